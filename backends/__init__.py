@@ -1,0 +1,115 @@
+"""Backends: the same interface for GLSL (moderngl) and OpenCL (pyopencl).
+
+    device = get_device("glsl" | "opencl")
+    built = build(device, "grid", scene, BuildParams(resolution=(64, 64, 64)))
+    hits = trace(built, rays)                # closest hit: prim id + distance per ray
+    timing = time_trace(built, rays, 1, 5)   # device time of the trace kernel
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .device import Device, DeviceError, DeviceLimitError, Timing
+from .structures import CUBIC_STRUCTURES, STRUCTURES
+from .structures.base import BuildParams, Built, GridGeometry, Hits, with_work_counters
+
+BACKENDS = ("glsl", "opencl")
+_devices: dict[str, Device] = {}
+
+
+def get_device(name: str) -> Device:
+    if name not in BACKENDS:
+        raise ValueError(f"unknown backend {name!r}; choose one of {', '.join(BACKENDS)}")
+    if name not in _devices:
+        if name == "glsl":
+            from .glsl import GLSLDevice
+
+            _devices[name] = GLSLDevice()
+        else:
+            from .opencl import OpenCLDevice
+
+            _devices[name] = OpenCLDevice()
+    return _devices[name]
+
+
+def structure_names() -> list[str]:
+    return list(STRUCTURES)
+
+
+def geometry_for(structure: str, scene, params: BuildParams) -> GridGeometry:
+    lo, hi = scene.bounds
+    return GridGeometry.over_bounds(lo, hi, params.resolution, cubic=structure in CUBIC_STRUCTURES)
+
+
+def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
+    if structure not in STRUCTURES:
+        raise ValueError(f"unknown structure {structure!r}; choose one of {', '.join(STRUCTURES)}")
+    module = STRUCTURES[structure]
+    geometry = geometry_for(structure, scene, params)
+    module.prepare(device)  # compiles are never part of the build time
+    scene_buffers = {
+        "vertices": device.upload("vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
+        "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel()),
+    }
+    device.finish()
+    t0 = time.perf_counter()
+    buffers, uniforms, trace_spec, stats = module.build(device, scene_buffers, scene.triangle_count,
+                                                        geometry, params)
+    device.finish()
+    seconds = time.perf_counter() - t0
+    return Built(structure, device, params, geometry, scene_buffers, buffers, uniforms, trace_spec,
+                 build_seconds=seconds, stats=stats)
+
+
+def _ray_buffer(rays) -> np.ndarray:
+    """float4 pairs per ray: origin.xyz + tmin, direction.xyz + tmax."""
+    n = rays.count
+    packed = np.empty((n, 2, 4), np.float32)
+    packed[:, 0, :3] = rays.origins
+    packed[:, 0, 3] = rays.tmin
+    packed[:, 1, :3] = rays.directions
+    packed[:, 1, 3] = np.inf
+    return packed.ravel()
+
+
+def _trace_buffers(built: Built, rays, work: bool):
+    d = built.device
+    bufs = dict(built.scene_buffers)
+    bufs.update(built.buffers)
+    bufs["rays"] = d.upload("rays", _ray_buffer(rays))
+    bufs["hit_prim"] = d.alloc("hit_prim", 4 * rays.count, zero=False)
+    bufs["hit_t"] = d.alloc("hit_t", 4 * rays.count, zero=False)
+    if work:
+        bufs["work"] = d.alloc("work", 16 * rays.count)
+    return bufs
+
+
+def _release(device, bufs, names):
+    for n in names:
+        if n in bufs:
+            device.release(bufs[n])
+
+
+def trace(built: Built, rays, work: bool = False) -> Hits:
+    """Closest hit for every ray; work=True runs the profiling kernel with per-ray counters."""
+    d = built.device
+    spec = with_work_counters(built.trace_spec) if work else built.trace_spec
+    bufs = _trace_buffers(built, rays, work)
+    d.dispatch(spec, rays.count, bufs, built.uniforms)
+    d.finish()
+    hits = Hits(d.read(bufs["hit_prim"], np.int32, rays.count), d.read(bufs["hit_t"], np.float32, rays.count))
+    if work:
+        hits.work = d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4)
+    _release(d, bufs, ("rays", "hit_prim", "hit_t", "work"))
+    return hits
+
+
+def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5) -> Timing:
+    """Device time of the plain (counter-free) trace kernel, warm-up launches not counted."""
+    d = built.device
+    bufs = _trace_buffers(built, rays, False)
+    timing = d.time_dispatch(built.trace_spec, rays.count, bufs, built.uniforms, warmup, repeats)
+    _release(d, bufs, ("rays", "hit_prim", "hit_t"))
+    return timing

@@ -1,0 +1,100 @@
+"""What every backend provides: buffers, compiled kernels, dispatch, scan, timing.
+
+Structures (backends/structures/*.py) are written once against this interface; `glsl.py` and
+`opencl.py` implement it with moderngl and pyopencl. Nothing here runs on the host in place of
+the device: every build and trace step is a kernel launch.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .kernels import KernelSpec
+
+
+class DeviceLimitError(RuntimeError):
+    """A case needs more than the driver allows (buffer size, work groups, memory, index width).
+    The message names the limit; the harness records the case as failed and goes on."""
+
+
+class DeviceError(RuntimeError):
+    """The driver reported an error (compile failure, GL error after a dispatch, ...)."""
+
+
+@dataclass
+class DeviceBuffer:
+    name: str
+    nbytes: int  # allocated
+    handle: object  # moderngl.Buffer or pyopencl.Buffer
+    used_bytes: int | None = None  # bytes that hold data, when less than allocated
+
+    @property
+    def used(self) -> int:
+        return self.nbytes if self.used_bytes is None else self.used_bytes
+
+
+@dataclass
+class Timing:
+    seconds: list[float]  # one entry per repeat, device time of the measured launches
+    clock: str  # which clock measured it
+
+
+class Device(abc.ABC):
+    backend: str  # "glsl" or "opencl"
+
+    @abc.abstractmethod
+    def info(self) -> dict:
+        """device, driver, backend_version and the limits that matter (max buffer bytes ...)."""
+
+    @property
+    @abc.abstractmethod
+    def max_buffer_bytes(self) -> int: ...
+
+    @abc.abstractmethod
+    def alloc(self, name: str, nbytes: int, zero: bool = True) -> DeviceBuffer: ...
+
+    @abc.abstractmethod
+    def upload(self, name: str, array: np.ndarray) -> DeviceBuffer: ...
+
+    @abc.abstractmethod
+    def read(self, buf: DeviceBuffer, dtype, count: int | None = None) -> np.ndarray: ...
+
+    @abc.abstractmethod
+    def fill_zero(self, buf: DeviceBuffer) -> None: ...
+
+    @abc.abstractmethod
+    def dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
+                 uniforms: dict[str, object] | None = None) -> None:
+        """Run spec's body once per item 0..n_items-1."""
+
+    @abc.abstractmethod
+    def exclusive_scan(self, src: DeviceBuffer, n: int, name: str) -> tuple[DeviceBuffer, int]:
+        """Exclusive prefix sum of n uint32 values into a new buffer of n+1 entries (the last
+        one is the total, so buffer[i]..buffer[i+1] is item i's range); returns the total."""
+
+    @abc.abstractmethod
+    def finish(self) -> None: ...
+
+    @abc.abstractmethod
+    def time_dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
+                      uniforms: dict[str, object] | None, warmup: int, repeats: int) -> Timing:
+        """Warm-up launches (not counted: compile, first launch), then `repeats` timed ones."""
+
+    def check_size(self, name: str, nbytes: int) -> None:
+        limit = self.max_buffer_bytes
+        if nbytes > limit:
+            raise DeviceLimitError(
+                f"buffer '{name}' needs {nbytes / 2**20:.1f} MiB, over the {self.backend} "
+                f"driver's per-buffer limit of {limit / 2**20:.0f} MiB ({self.limit_name})")
+
+    limit_name = "max buffer size"
+
+
+def as_float4(v, w: float = 0.0) -> tuple[float, float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]), float(w))
+
+
+def as_int4(v, w: int = 0) -> tuple[int, int, int, int]:
+    return (int(v[0]), int(v[1]), int(v[2]), int(w))

@@ -1,0 +1,291 @@
+"""GLSL backend: moderngl compute shaders (plus the raster pipeline for voxelization) on a
+standalone EGL context, `#version 450` so the same sources run on Mesa llvmpipe and NVIDIA."""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing
+from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
+
+MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
+SCAN_BLOCK = 256  # items per work group in the prefix-sum kernels (2 per invocation)
+
+
+def _prelude() -> str:
+    return (SHADER_ROOT / "glsl" / "prelude.glsl").read_text()
+
+
+def declarations(spec: KernelSpec) -> str:
+    """std430 SSBOs (binding = position in spec.buffers) and plain uniforms."""
+    lines = []
+    for binding, b in enumerate(spec.buffers):
+        qual = {"r": "readonly ", "w": "writeonly ", "rw": ""}[b.access]
+        lines.append(f"layout(std430, binding = {binding}) {qual}buffer B_{b.name} "
+                     f"{{ {b.type} {b.name}[]; }};")
+    for u in spec.uniforms:
+        lines.append(f"uniform {u.type} {u.name};")
+    lines.append("uniform uint n_items;")
+    return "\n".join(lines) + "\n"
+
+
+def compute_source(spec: KernelSpec) -> str:
+    return (
+        "#version 450\n"
+        + ("#extension GL_ARB_shader_clock : require\n" if ("USE_CLOCK", "1") in spec.defines else "")
+        + f"layout(local_size_x = {spec.local_size}) in;\n"
+        + _prelude() + define_lines(spec.defines) + has_lines(spec) + declarations(spec) + read_common(spec.headers)
+        + "\nvoid main() {\n"
+        # Two-dimensional dispatch: more than 65 535 groups spill into y.
+        f"    uint gid = (gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) * {spec.local_size}u"
+        " + gl_LocalInvocationID.x;\n"
+        "    if (gid >= n_items) return;\n"
+        f"    {spec.body}(CTX_ARG gid);\n"
+        "}\n")
+
+
+class GLSLDevice(Device):
+    backend = "glsl"
+    limit_name = "GL_MAX_SHADER_STORAGE_BLOCK_SIZE"
+
+    def __init__(self):
+        import moderngl
+
+        self.mgl = moderngl
+        try:
+            self.ctx = moderngl.create_context(standalone=True, backend="egl", require=450)
+        except Exception as exc:  # no EGL / Mesa: name what is missing
+            raise DeviceError(
+                f"cannot create an OpenGL 4.5 context through EGL ({exc}); install the EGL and "
+                "Mesa drivers, e.g. `apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri`") from exc
+        self._programs: dict = {}
+        self._scan_programs: dict = {}
+        # Framebuffers by size, kept: releasing a bound framebuffer left the next draw failing
+        # with GL_INVALID_OPERATION under moderngl 5.13 / llvmpipe.
+        self._raster_targets: dict = {}
+        self._max_ssbo = int(self.ctx.info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"])
+
+    # --- information -----------------------------------------------------------------------
+    def info(self) -> dict:
+        i = self.ctx.info
+        return {
+            "backend": "glsl",
+            "device": i["GL_RENDERER"],
+            "driver": i["GL_VERSION"],
+            "vendor": i["GL_VENDOR"],
+            "backend_version": f"moderngl {self.mgl.__version__}",
+            "max_buffer_bytes": self._max_ssbo,
+            "shader_clock": "GL_ARB_shader_clock" in self.ctx.extensions,
+            "int64": "GL_ARB_gpu_shader_int64" in self.ctx.extensions,
+        }
+
+    @property
+    def max_buffer_bytes(self) -> int:
+        return self._max_ssbo
+
+    @property
+    def is_llvmpipe(self) -> bool:
+        return "llvmpipe" in self.ctx.info["GL_RENDERER"]
+
+    # --- errors ----------------------------------------------------------------------------
+    def check_error(self, what: str) -> None:
+        """moderngl raises nothing on GL errors (e.g. too many work groups): ask GL."""
+        err = self.ctx.error
+        if err != "GL_NO_ERROR":
+            if err == "GL_OUT_OF_MEMORY":
+                raise DeviceLimitError(f"{what}: GL_OUT_OF_MEMORY")
+            raise DeviceError(f"{what}: {err}")
+
+    # --- buffers ---------------------------------------------------------------------------
+    def alloc(self, name, nbytes, zero=True):
+        nbytes = max(int(nbytes), 4)
+        self.check_size(name, nbytes)
+        try:
+            buf = self.ctx.buffer(reserve=nbytes)
+        except Exception as exc:
+            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
+        self.check_error(f"allocating buffer '{name}'")
+        if zero:
+            buf.clear()
+        return DeviceBuffer(name, nbytes, buf)
+
+    def upload(self, name, array):
+        data = np.ascontiguousarray(array)
+        if data.nbytes == 0:
+            return self.alloc(name, 4)
+        self.check_size(name, data.nbytes)
+        buf = self.ctx.buffer(data.tobytes())
+        self.check_error(f"uploading buffer '{name}'")
+        return DeviceBuffer(name, data.nbytes, buf)
+
+    def read(self, buf, dtype, count=None):
+        dtype = np.dtype(dtype)
+        size = buf.nbytes if count is None else int(count) * dtype.itemsize
+        return np.frombuffer(buf.handle.read(size=size), dtype=dtype).copy()
+
+    def fill_zero(self, buf):
+        buf.handle.clear()
+
+    def release(self, buf):
+        buf.handle.release()
+
+    # --- kernels ---------------------------------------------------------------------------
+    def program(self, spec: KernelSpec):
+        prog = self._programs.get(spec.key)
+        if prog is None:
+            src = compute_source(spec)
+            try:
+                prog = self.ctx.compute_shader(src)
+            except Exception as exc:
+                raise DeviceError(f"GLSL compile of {spec.name} failed:\n{exc}\n{numbered(src)}") from exc
+            self._programs[spec.key] = prog
+        return prog
+
+    def _bind(self, prog, spec, n_items, buffers, uniforms):
+        for binding, b in enumerate(spec.buffers):
+            if b.name not in buffers:
+                raise KeyError(f"{spec.name}: buffer '{b.name}' not given")
+            buffers[b.name].handle.bind_to_storage_buffer(binding)
+        values = dict(uniforms or {})
+        values["n_items"] = int(n_items)
+        for name, value in values.items():
+            if name in prog:  # the compiler drops unused uniforms
+                prog[name].value = value
+
+    def _groups(self, spec, n_items):
+        groups = max(1, math.ceil(n_items / spec.local_size))
+        gx = min(groups, MAX_GROUPS)
+        gy = math.ceil(groups / gx)
+        if gy > MAX_GROUPS:
+            raise DeviceLimitError(
+                f"{spec.name}: {n_items} items need {groups} work groups, over "
+                f"{MAX_GROUPS}x{MAX_GROUPS} (GL_MAX_COMPUTE_WORK_GROUP_COUNT)")
+        return gx, gy
+
+    def dispatch(self, spec, n_items, buffers, uniforms=None):
+        if n_items <= 0:
+            return
+        prog = self.program(spec)
+        self._bind(prog, spec, n_items, buffers, uniforms)
+        gx, gy = self._groups(spec, n_items)
+        prog.run(gx, gy, 1)
+        self.ctx.memory_barrier()
+        self.check_error(f"dispatch of {spec.name} ({gx}x{gy} groups)")
+
+    def finish(self):
+        self.ctx.finish()
+
+    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats):
+        prog = self.program(spec)
+        self._bind(prog, spec, n_items, buffers, uniforms)
+        gx, gy = self._groups(spec, n_items)
+        for _ in range(max(warmup, 1)):
+            prog.run(gx, gy, 1)
+        self.ctx.finish()
+        self.check_error(f"warm-up of {spec.name}")
+        # GL_TIME_ELAPSED is used where it reads non-zero and close to wall time; llvmpipe
+        # reads 0 for compute, so there the host clock around glFinish measures.
+        query = self.ctx.query(time=True)
+        seconds, clock = [], "host clock around glFinish"
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            with query:
+                prog.run(gx, gy, 1)
+            self.ctx.finish()
+            wall = time.perf_counter() - t0
+            gpu = query.elapsed * 1e-9
+            if gpu > 0 and 0.5 * wall <= gpu <= 1.05 * wall:
+                seconds.append(gpu)
+                clock = "GL_TIME_ELAPSED"
+            else:
+                seconds.append(wall)
+        self.check_error(f"timed dispatch of {spec.name}")
+        return Timing(seconds, clock)
+
+    # --- prefix sum ------------------------------------------------------------------------
+    def _scan_program(self, kind: str):
+        prog = self._scan_programs.get(kind)
+        if prog is None:
+            src = (SHADER_ROOT / "glsl" / "scan.comp").read_text()
+            src = src.replace("#version 450\n", f"#version 450\n#define {kind} 1\n#define BLOCK {SCAN_BLOCK}\n", 1)
+            try:
+                prog = self.ctx.compute_shader(src)
+            except Exception as exc:
+                raise DeviceError(f"GLSL compile of scan ({kind}) failed:\n{exc}\n{numbered(src)}") from exc
+            self._scan_programs[kind] = prog
+        return prog
+
+    def _scan_in_place(self, buf: DeviceBuffer, n: int) -> None:
+        """Blelloch-style block scan: scan each block of SCAN_BLOCK items in shared memory,
+        write block totals, scan those recursively, add them back."""
+        blocks = math.ceil(n / SCAN_BLOCK)
+        sums = self.alloc(f"{buf.name}.blocksums", 4 * blocks)
+        prog = self._scan_program("SCAN_BLOCKS")
+        buf.handle.bind_to_storage_buffer(0)
+        sums.handle.bind_to_storage_buffer(1)
+        prog["n_items"].value = n
+        gx = min(blocks, MAX_GROUPS)
+        prog.run(gx, math.ceil(blocks / gx), 1)
+        self.ctx.memory_barrier()
+        if blocks > 1:
+            self._scan_in_place(sums, blocks)
+            add = self._scan_program("ADD_BLOCKS")
+            buf.handle.bind_to_storage_buffer(0)
+            sums.handle.bind_to_storage_buffer(1)
+            add["n_items"].value = n
+            add.run(gx, math.ceil(blocks / gx), 1)
+            self.ctx.memory_barrier()
+        self.check_error("prefix sum")
+        sums.handle.release()
+
+    def exclusive_scan(self, src, n, name):
+        out = self.alloc(name, 4 * (n + 1), zero=True)
+        self.ctx.copy_buffer(out.handle, src.handle, size=4 * n)
+        self._scan_in_place(out, n + 1)  # the extra zero entry becomes the total
+        total = int(self.read(out, np.uint32)[n]) if n < 2**20 else int(
+            np.frombuffer(out.handle.read(size=4, offset=4 * n), np.uint32)[0])
+        return out, total
+
+    # --- raster voxelization ---------------------------------------------------------------
+    def raster_program(self, spec: KernelSpec):
+        """Vertex + geometry + fragment program for the conservative voxelizer of thesis 3.4:
+        one point per triangle, the geometry shader projects along the dominant axis and emits
+        the dilated footprint, each fragment tests its column's depth neighbours."""
+        prog = self._programs.get(("raster",) + spec.key)
+        if prog is None:
+            head = "#version 450\n" + _prelude() + define_lines(spec.defines) + has_lines(spec) + declarations(spec) \
+                + read_common(spec.headers) + "\n"
+            stage = lambda f: head + (SHADER_ROOT / "glsl" / f).read_text()  # noqa: E731
+            try:
+                prog = self.ctx.program(
+                    vertex_shader=stage("voxelize.vert"),
+                    geometry_shader=stage("voxelize.geom"),
+                    fragment_shader=stage("voxelize.frag"))
+            except Exception as exc:
+                raise DeviceError(f"GLSL compile of the raster voxelizer failed:\n{exc}") from exc
+            self._programs[("raster",) + spec.key] = prog
+        return prog
+
+    def rasterize_triangles(self, spec, n_tris, buffers, uniforms, viewport: int):
+        """Draw n_tris points through the raster voxelizer into an attachment-less-sized
+        viewport of viewport x viewport pixels (one pixel = one voxel column)."""
+        prog = self.raster_program(spec)
+        self._bind(prog, spec, n_tris, buffers, uniforms)
+        # llvmpipe accepts a framebuffer without attachments, moderngl wants one: a 1-byte
+        # renderbuffer of the viewport size with colour writes off costs viewport^2 bytes.
+        fbo = self._raster_targets.get(viewport)
+        if fbo is None:
+            rb = self.ctx.renderbuffer((viewport, viewport), components=1, dtype="f1")
+            fbo = self.ctx.framebuffer(color_attachments=[rb])
+            fbo.color_mask = (False, False, False, False)
+            self._raster_targets[viewport] = fbo
+        fbo.use()
+        fbo.viewport = (0, 0, viewport, viewport)
+        self.ctx.disable(self.mgl.DEPTH_TEST | self.mgl.CULL_FACE | self.mgl.BLEND)
+        vao = self.ctx.vertex_array(prog, [])
+        vao.render(mode=self.mgl.POINTS, vertices=int(n_tris))
+        self.ctx.memory_barrier()
+        self.check_error("raster voxelization")
+        vao.release()

@@ -1,0 +1,85 @@
+"""Kernel specifications: one description per kernel, turned into GLSL or OpenCL C.
+
+A kernel's algorithm lives once, in `shaders/common/*.h`, as a function
+`void body(CTX_PARAM uint gid)` written in the small C dialect of the preludes. The spec below
+names the buffers and scalar arguments it reads; each backend generates the declarations its
+language needs (GLSL: std430 SSBOs + uniforms; OpenCL: kernel parameters gathered into a `Ctx`
+struct) and a tiny entry point that bounds-checks `gid` against `n_items` and calls the body.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+SHADER_ROOT = Path(__file__).resolve().parent.parent / "shaders"
+
+# Scalar/vector types usable in buffers and uniforms, with numpy dtype and element size.
+# std430 and OpenCL agree on these layouts (no 3-component types in buffers on purpose).
+TYPE_BYTES = {"float": 4, "uint": 4, "int": 4, "float4": 16, "uint4": 16, "int4": 16, "uint2": 8}
+
+
+@dataclass(frozen=True)
+class Buf:
+    name: str
+    type: str  # element type, a key of TYPE_BYTES
+    access: str = "rw"  # "r", "w" or "rw"
+
+
+@dataclass(frozen=True)
+class Uniform:
+    name: str
+    type: str  # "float", "uint", "int", "float4", "int4", "uint4"
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    name: str
+    headers: tuple[str, ...]  # files under shaders/common, concatenated in order
+    body: str  # void body(CTX_PARAM uint gid)
+    buffers: tuple[Buf, ...]
+    uniforms: tuple[Uniform, ...] = ()
+    defines: tuple[tuple[str, str], ...] = ()
+    local_size: int = 64
+
+    def with_defines(self, **defines: object) -> "KernelSpec":
+        extra = tuple((k, str(v)) for k, v in sorted(defines.items()))
+        return KernelSpec(self.name, self.headers, self.body, self.buffers, self.uniforms,
+                          self.defines + extra, self.local_size)
+
+    @property
+    def key(self) -> tuple:
+        return (self.name, self.headers, self.body, self.buffers, self.uniforms, self.defines,
+                self.local_size)
+
+
+def read_common(headers: tuple[str, ...]) -> str:
+    parts = []
+    for h in headers:
+        path = SHADER_ROOT / "common" / h
+        parts.append(f"// ---- common/{h}\n" + path.read_text())
+    return "\n".join(parts)
+
+
+def define_lines(defines: tuple[tuple[str, str], ...]) -> str:
+    return "".join(f"#define {k} {v}\n" for k, v in defines)
+
+
+def has_lines(spec: "KernelSpec") -> str:
+    """HAS_<buffer> for each buffer the kernel binds: common code guards the sections that
+    need a buffer with it, so one header serves kernels with different buffer sets."""
+    return "".join(f"#define HAS_{b.name} 1\n" for b in spec.buffers)
+
+
+def numbered(source: str) -> str:
+    """Source with line numbers, for compiler error messages."""
+    return "\n".join(f"{i + 1:5d}  {line}" for i, line in enumerate(source.splitlines()))
+
+
+# --- Specs shared by every structure -------------------------------------------------------
+SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
+RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
+GRID_UNIFORMS = (Uniform("grid_origin", "float4"), Uniform("grid_inv_voxel", "float4"),
+                 Uniform("grid_res", "int4"), Uniform("box_eps", "float"))
+# Per-ray work counters (iterations, candidate tests, Line Space lookups, clock) for profiling
+# builds only: the plain kernels are compiled without COUNT_WORK and never touch this buffer.
+WORK_BUFFER = Buf("work", "uint4", "w")

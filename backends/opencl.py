@@ -1,0 +1,231 @@
+"""OpenCL backend: pyopencl on a GPU device when there is one, else the CPU (PoCL here).
+`LSBENCH_OPENCL_DEVICE=substring` picks a device by name."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing
+from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
+
+CL_TYPES = {"float": "float", "uint": "uint", "int": "int", "float4": "float4", "uint4": "uint4",
+            "int4": "int4", "uint2": "uint2"}
+
+
+def _prelude() -> str:
+    return (SHADER_ROOT / "opencl" / "prelude.cl").read_text()
+
+
+def kernel_source(spec: KernelSpec) -> str:
+    """Ctx struct with every buffer pointer and scalar, the shared code, and the entry point."""
+    fields, params, assigns = [], [], []
+    for b in spec.buffers:
+        const = "const " if b.access == "r" else ""
+        decl = f"__global {const}{CL_TYPES[b.type]}* {b.name}"
+        fields.append(f"    {decl};")
+        params.append(decl)
+        assigns.append(f"    c.{b.name} = {b.name};")
+    for name, type_name in [(u.name, u.type) for u in spec.uniforms] + [("n_items", "uint")]:
+        fields.append(f"    {CL_TYPES[type_name]} {name};")
+        params.append(f"{CL_TYPES[type_name]} {name}")
+        assigns.append(f"    c.{name} = {name};")
+    return (
+        _prelude() + define_lines(spec.defines) + has_lines(spec)
+        + "typedef struct {\n" + "\n".join(fields) + "\n} Ctx;\n"
+        + read_common(spec.headers)
+        + f"\n__kernel void k_{spec.name}(" + ", ".join(params) + ") {\n"
+        + "    uint gid = (uint)get_global_id(0);\n    if (gid >= n_items) return;\n"
+        + "    Ctx c;\n" + "\n".join(assigns) + "\n"
+        + f"    {spec.body}(&c, gid);\n}}\n")
+
+
+def _numpy_scalar(type_name: str, value):
+    import pyopencl.cltypes as clt
+
+    if type_name == "float":
+        return np.float32(value)
+    if type_name == "uint":
+        return np.uint32(value)
+    if type_name == "int":
+        return np.int32(value)
+    maker = {"float4": clt.make_float4, "uint4": clt.make_uint4, "int4": clt.make_int4}[type_name]
+    return maker(*value)
+
+
+class OpenCLDevice(Device):
+    backend = "opencl"
+    limit_name = "CL_DEVICE_MAX_MEM_ALLOC_SIZE"
+
+    def __init__(self):
+        import pyopencl as cl
+
+        self.cl = cl
+        self.device = self._pick_device()
+        self.ctx = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        self._programs: dict = {}
+        self._scan = None
+
+    def _pick_device(self):
+        cl = self.cl
+        try:
+            platforms = cl.get_platforms()
+        except cl.Error as exc:
+            raise DeviceError(
+                f"no OpenCL platform ({exc}); install an ICD, e.g. `pip install "
+                "pocl-binary-distribution` for the CPU") from exc
+        devices = [d for p in platforms for d in p.get_devices()]
+        if not devices:
+            raise DeviceError("no OpenCL device found; `pip install pocl-binary-distribution` gives a CPU one")
+        wanted = os.environ.get("LSBENCH_OPENCL_DEVICE")
+        if wanted:
+            devices = [d for d in devices if wanted.lower() in d.name.lower()]
+            if not devices:
+                raise DeviceError(f"LSBENCH_OPENCL_DEVICE={wanted!r} matches no OpenCL device")
+        # GPUs first. A device whose compiler cannot build a trivial kernel is skipped: the
+        # pip PoCL 3.0 (LLVM 14) reports CPU 'generic' on CPUs newer than LLVM 14 and then
+        # rejects it, while Debian's PoCL 3.1 on the same machine works.
+        devices.sort(key=lambda d: 0 if d.type & cl.device_type.GPU else 1)
+        self.skipped_devices = []
+        for d in devices:
+            try:
+                ctx = cl.Context([d])
+                cl.Program(ctx, "__kernel void probe(__global int* a) { a[0] = 1; }").build()
+                return d
+            except cl.Error as exc:
+                first = str(exc).strip().splitlines()
+                self.skipped_devices.append(f"{d.name.strip()} ({d.platform.version.strip()}): "
+                                            "cannot build kernels")
+        raise DeviceError("no OpenCL device can build kernels: " + "; ".join(self.skipped_devices)
+                          + "; on Debian `apt-get install pocl-opencl-icd` gives a working CPU device")
+
+    # --- information -----------------------------------------------------------------------
+    def info(self) -> dict:
+        d = self.device
+        import pyopencl
+
+        return {
+            "backend": "opencl",
+            "device": d.name.strip(),
+            "driver": f"{d.platform.name.strip()} {d.platform.version.strip()}; driver {d.driver_version}",
+            "vendor": d.vendor.strip(),
+            "backend_version": f"pyopencl {pyopencl.VERSION_TEXT}",
+            "max_buffer_bytes": int(d.max_mem_alloc_size),
+            "global_mem_bytes": int(d.global_mem_size),
+            "device_type": self.cl.device_type.to_string(d.type),
+            "skipped_devices": self.skipped_devices,
+        }
+
+    @property
+    def max_buffer_bytes(self) -> int:
+        return int(self.device.max_mem_alloc_size)
+
+    # --- buffers ---------------------------------------------------------------------------
+    def alloc(self, name, nbytes, zero=True):
+        cl = self.cl
+        nbytes = max(int(nbytes), 4)
+        self.check_size(name, nbytes)
+        try:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+            if zero:
+                cl.enqueue_fill_buffer(self.queue, buf, np.uint32(0), 0, nbytes)
+        except cl.Error as exc:
+            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
+        return DeviceBuffer(name, nbytes, buf)
+
+    def upload(self, name, array):
+        cl = self.cl
+        data = np.ascontiguousarray(array)
+        if data.nbytes == 0:
+            return self.alloc(name, 4)
+        self.check_size(name, data.nbytes)
+        try:
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
+        except cl.Error as exc:
+            raise DeviceLimitError(f"allocating buffer '{name}' of {data.nbytes} bytes failed: {exc}") from exc
+        return DeviceBuffer(name, data.nbytes, buf)
+
+    def read(self, buf, dtype, count=None):
+        dtype = np.dtype(dtype)
+        n = buf.nbytes // dtype.itemsize if count is None else int(count)
+        out = np.empty(n, dtype=dtype)
+        self.cl.enqueue_copy(self.queue, out, buf.handle, is_blocking=True)
+        return out
+
+    def fill_zero(self, buf):
+        self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes)
+
+    def release(self, buf):
+        buf.handle.release()
+
+    # --- kernels ---------------------------------------------------------------------------
+    def kernel(self, spec: KernelSpec):
+        knl = self._programs.get(spec.key)
+        if knl is None:
+            src = kernel_source(spec)
+            try:
+                prog = self.cl.Program(self.ctx, src).build()
+            except self.cl.Error as exc:
+                raise DeviceError(f"OpenCL build of {spec.name} failed:\n{exc}\n{numbered(src)}") from exc
+            knl = getattr(prog, "k_" + spec.name)
+            self._programs[spec.key] = knl
+        return knl
+
+    def _args(self, spec, n_items, buffers, uniforms):
+        args = []
+        for b in spec.buffers:
+            if b.name not in buffers:
+                raise KeyError(f"{spec.name}: buffer '{b.name}' not given")
+            args.append(buffers[b.name].handle)
+        uniforms = uniforms or {}
+        for u in spec.uniforms:
+            args.append(_numpy_scalar(u.type, uniforms[u.name]))
+        args.append(np.uint32(n_items))
+        return args
+
+    def _launch(self, spec, n_items, args):
+        knl = self.kernel(spec)
+        local = spec.local_size
+        global_size = ((n_items + local - 1) // local) * local
+        try:
+            return knl(self.queue, (global_size,), (local,), *args)
+        except self.cl.Error as exc:
+            if "OUT_OF" in str(exc) or "MEM_OBJECT_ALLOCATION" in str(exc):
+                raise DeviceLimitError(f"{spec.name}: {exc}") from exc
+            raise DeviceError(f"{spec.name}: {exc}") from exc
+
+    def dispatch(self, spec, n_items, buffers, uniforms=None):
+        if n_items <= 0:
+            return None
+        return self._launch(spec, n_items, self._args(spec, n_items, buffers, uniforms))
+
+    def finish(self):
+        self.queue.finish()
+
+    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats):
+        args = self._args(spec, n_items, buffers, uniforms)
+        for _ in range(max(warmup, 1)):
+            self._launch(spec, n_items, args)
+        self.queue.finish()
+        seconds = []
+        for _ in range(repeats):
+            ev = self._launch(spec, n_items, args)
+            ev.wait()
+            seconds.append((ev.profile.end - ev.profile.start) * 1e-9)
+        return Timing(seconds, "OpenCL event profiling")
+
+    # --- prefix sum ------------------------------------------------------------------------
+    def exclusive_scan(self, src, n, name):
+        import pyopencl.array as cla
+        from pyopencl.scan import ExclusiveScanKernel
+
+        if self._scan is None:
+            self._scan = ExclusiveScanKernel(self.ctx, np.uint32, "a+b", "0")
+        out = self.alloc(name, 4 * (n + 1), zero=True)
+        self.cl.enqueue_copy(self.queue, out.handle, src.handle, byte_count=4 * n)
+        arr = cla.Array(self.queue, (n + 1,), np.uint32, data=out.handle)
+        self._scan(arr, queue=self.queue)  # in place; the extra zero entry becomes the total
+        total = np.empty(1, np.uint32)
+        self.cl.enqueue_copy(self.queue, total, out.handle, src_offset=4 * n, is_blocking=True)
+        return out, int(total[0])

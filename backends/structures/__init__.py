@@ -1,0 +1,12 @@
+"""Structure registry: name -> module with prepare(device) and build(device, scene_buffers,
+n_tris, geometry, params) -> (buffers, uniforms, trace_spec, stats)."""
+from __future__ import annotations
+
+from . import grid
+
+STRUCTURES = {
+    "grid": grid,
+}
+
+# Octrees need a cubic, power-of-two grid over the scene's bounding cube.
+CUBIC_STRUCTURES: set[str] = set()

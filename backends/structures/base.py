@@ -1,0 +1,118 @@
+"""Plain data shared by every structure: grid geometry, build parameters, built structure, hits."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..device import Device, DeviceBuffer, as_float4, as_int4
+from ..kernels import KernelSpec, WORK_BUFFER
+
+# Overlap epsilon of the conservative voxelization, in voxel units: a triangle within this
+# distance of a voxel counts as overlapping it, so float32 rounding never drops a pair.
+BOX_EPS = 1e-3
+
+
+def parse_resolution(value) -> tuple[int, int, int]:
+    """64 -> (64, 64, 64); "64x32x16" or (64, 32, 16) -> non-cubic."""
+    if isinstance(value, (tuple, list)):
+        res = tuple(int(v) for v in value)
+    elif isinstance(value, str) and "x" in value.lower():
+        res = tuple(int(v) for v in value.lower().split("x"))
+    else:
+        res = (int(value),) * 3
+    if len(res) != 3 or min(res) < 1:
+        raise ValueError(f"resolution must be a positive integer or RxRyRz, got {value!r}")
+    return res  # type: ignore[return-value]
+
+
+def format_resolution(res: tuple[int, int, int]) -> str:
+    return str(res[0]) if res[0] == res[1] == res[2] else "x".join(map(str, res))
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Axis-aligned grid over the scene: voxel (i,j,k) covers origin + [i,i+1]x.. * voxel_size."""
+    origin: tuple[float, float, float]
+    voxel_size: tuple[float, float, float]
+    resolution: tuple[int, int, int]
+
+    @staticmethod
+    def over_bounds(lo, hi, resolution, cubic: bool = False) -> "GridGeometry":
+        """Grid over [lo, hi], padded by a hair so no triangle lies on the outer boundary.
+        A flat axis (zero extent) gets a small extent so voxels never have zero size.
+        cubic: use the bounding cube (octrees), centred on the scene."""
+        lo = np.asarray(lo, np.float64)
+        hi = np.asarray(hi, np.float64)
+        diag = float(np.linalg.norm(hi - lo)) or 1.0
+        extent = np.maximum(hi - lo, 1e-3 * diag)
+        centre = 0.5 * (lo + hi)
+        if cubic:
+            extent = np.full(3, extent.max())
+        extent = extent * (1 + 2e-5) + 1e-6 * diag + 1e-30
+        origin = centre - 0.5 * extent
+        res = np.asarray(resolution, np.float64)
+        return GridGeometry(tuple(origin.tolist()), tuple((extent / res).tolist()),
+                            tuple(int(r) for r in resolution))
+
+    @property
+    def voxel_count(self) -> int:
+        rx, ry, rz = self.resolution
+        return rx * ry * rz
+
+    def uniforms(self) -> dict:
+        return {
+            "grid_origin": as_float4(self.origin),
+            "grid_inv_voxel": as_float4(1.0 / np.asarray(self.voxel_size)),
+            "grid_res": as_int4(self.resolution),
+            "box_eps": BOX_EPS,
+        }
+
+
+@dataclass
+class BuildParams:
+    resolution: tuple[int, int, int]
+    ls_n: int = 0  # Line Space patches per face edge (0 = no Line Space)
+    ls_min_candidates: int = 0  # build Line Spaces only in voxels with more candidates than this
+    options: dict = field(default_factory=dict)
+
+
+@dataclass
+class Built:
+    structure: str
+    device: Device
+    params: BuildParams
+    geometry: GridGeometry
+    scene_buffers: dict[str, DeviceBuffer]
+    buffers: dict[str, DeviceBuffer]  # the structure's own buffers (what memory_bytes counts)
+    uniforms: dict
+    trace_spec: KernelSpec
+    build_seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    def memory(self) -> dict[str, dict[str, int]]:
+        return {name: {"allocated": b.nbytes, "used": b.used} for name, b in self.buffers.items()}
+
+    @property
+    def memory_bytes(self) -> int:
+        return sum(b.nbytes for b in self.buffers.values())
+
+    def release(self) -> None:
+        for b in list(self.buffers.values()) + list(self.scene_buffers.values()):
+            release = getattr(self.device, "release", None)
+            if release is not None:
+                release(b)
+
+
+@dataclass
+class Hits:
+    prim_ids: np.ndarray  # int32, -1 = miss
+    distances: np.ndarray  # float32, inf for a miss
+    work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
+
+
+def with_work_counters(spec: KernelSpec) -> KernelSpec:
+    """The profiling variant of a traversal kernel: COUNT_WORK compiled in, a work buffer added."""
+    return dataclasses.replace(spec, name=spec.name + "_work", buffers=spec.buffers + (WORK_BUFFER,),
+                               defines=spec.defines + (("COUNT_WORK", "1"),))

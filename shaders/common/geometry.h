@@ -1,0 +1,93 @@
+// Geometry shared by every structure and both languages (see shaders/*/prelude for the dialect).
+
+// Component i of a float3 (OpenCL C does not portably index vectors with a variable).
+INLINE float comp3(float3 v, int i) { return i == 0 ? v.x : (i == 1 ? v.y : v.z); }
+INLINE int icomp3(int3 v, int i) { return i == 0 ? v.x : (i == 1 ? v.y : v.z); }
+
+// 1/x that maps +0 and -0 to +/-infinity by sign bit, so axis-parallel rays never divide by
+// zero and the slab test below sees an infinite slope instead of NaN.
+INLINE float safe_rcp(float x) {
+    if (x == 0.0f) return (as_uint(x) & 0x80000000u) != 0u ? -INF_F : INF_F;
+    return 1.0f / x;
+}
+
+// Ray/box slab test (Kay & Kajiya). Returns (t_enter, t_exit); the box is missed if t_enter > t_exit.
+// A zero direction component gives +/-inf slopes: 0 * inf is avoided by testing the origin.
+INLINE float2 ray_box(float3 o, float3 inv_d, float3 d, float3 lo, float3 hi) {
+    float t0 = -INF_F;
+    float t1 = INF_F;
+    for (int a = 0; a < 3; ++a) {
+        float oa = comp3(o, a);
+        float da = comp3(d, a);
+        float ia = comp3(inv_d, a);
+        float la = comp3(lo, a);
+        float ha = comp3(hi, a);
+        if (da == 0.0f) {
+            if (oa < la || oa > ha) { t0 = INF_F; t1 = -INF_F; }
+        } else {
+            float ta = (la - oa) * ia;
+            float tb = (ha - oa) * ia;
+            t0 = max(t0, min(ta, tb));
+            t1 = min(t1, max(ta, tb));
+        }
+    }
+    return make_float2(t0, t1);
+}
+
+// Moeller-Trumbore ray/triangle test (1997). Returns t, or INF_F for a miss.
+// Edges and vertices count as inside (u, v >= 0, u + v <= 1), so a ray through a shared edge
+// hits one of the two triangles; the verifier treats a different id at the same t as a tie.
+INLINE float ray_triangle(float3 o, float3 d, float3 v0, float3 v1, float3 v2) {
+    float3 e1 = v1 - v0;
+    float3 e2 = v2 - v0;
+    float3 p = cross(d, e2);
+    float det = dot(e1, p);
+    if (det == 0.0f) return INF_F;  // parallel or degenerate: no single hit point
+    float inv_det = 1.0f / det;
+    float3 s = o - v0;
+    float u = dot(s, p) * inv_det;
+    if (u < 0.0f || u > 1.0f) return INF_F;
+    float3 q = cross(s, e1);
+    float v = dot(d, q) * inv_det;
+    if (v < 0.0f || u + v > 1.0f) return INF_F;
+    float t = dot(e2, q) * inv_det;
+    return t;
+}
+
+// --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------
+// The box is centred at the origin with half extent h; the triangle is already translated.
+// A zero axis (degenerate triangle, parallel edge) projects everything to 0 and never separates,
+// so zero-area triangles are kept conservatively.
+INLINE int separated_on_axis(float3 a, float3 v0, float3 v1, float3 v2, float3 h) {
+    float p0 = dot(a, v0);
+    float p1 = dot(a, v1);
+    float p2 = dot(a, v2);
+    float r = h.x * fabs(a.x) + h.y * fabs(a.y) + h.z * fabs(a.z);
+    return (min(p0, min(p1, p2)) > r || max(p0, max(p1, p2)) < -r) ? 1 : 0;
+}
+
+INLINE int tri_box_overlap(float3 centre, float3 h, float3 a, float3 b, float3 c) {
+    float3 v0 = a - centre;
+    float3 v1 = b - centre;
+    float3 v2 = c - centre;
+    // 3 box normals: the triangle's bounds against the box.
+    if (min(v0.x, min(v1.x, v2.x)) > h.x || max(v0.x, max(v1.x, v2.x)) < -h.x) return 0;
+    if (min(v0.y, min(v1.y, v2.y)) > h.y || max(v0.y, max(v1.y, v2.y)) < -h.y) return 0;
+    if (min(v0.z, min(v1.z, v2.z)) > h.z || max(v0.z, max(v1.z, v2.z)) < -h.z) return 0;
+    float3 e0 = v1 - v0;
+    float3 e1 = v2 - v1;
+    float3 e2 = v0 - v2;
+    // Triangle normal.
+    if (separated_on_axis(cross(e0, e1), v0, v1, v2, h) != 0) return 0;
+    // 9 edge x box-axis cross products: cross(e, X) = (0, e.z, -e.y) etc.
+    if (separated_on_axis(make_float3(0.0f, e0.z, -e0.y), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(0.0f, e1.z, -e1.y), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(0.0f, e2.z, -e2.y), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(-e0.z, 0.0f, e0.x), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(-e1.z, 0.0f, e1.x), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(-e2.z, 0.0f, e2.x), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(e0.y, -e0.x, 0.0f), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(e1.y, -e1.x, 0.0f), v0, v1, v2, h) != 0) return 0;
+    if (separated_on_axis(make_float3(e2.y, -e2.x, 0.0f), v0, v1, v2, h) != 0) return 0;
+    return 1;
+}

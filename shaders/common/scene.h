@@ -1,0 +1,31 @@
+// Scene and ray access shared by all kernels.
+// Buffers: vertices (float, xyz packed), faces (uint, 3 per triangle), rays (float4 pairs:
+// origin.xyz + tmin, direction.xyz + tmax), hit_prim (int, -1 = miss), hit_t (float).
+
+INLINE float3 load_vertex(CTX_PARAM uint i) {
+    return make_float3(V(vertices)[3u * i], V(vertices)[3u * i + 1u], V(vertices)[3u * i + 2u]);
+}
+
+STRUCT(Triangle) { float3 a; float3 b; float3 c; };
+
+INLINE Triangle load_triangle(CTX_PARAM uint tri) {
+    Triangle t;
+    t.a = load_vertex(CTX_ARG V(faces)[3u * tri]);
+    t.b = load_vertex(CTX_ARG V(faces)[3u * tri + 1u]);
+    t.c = load_vertex(CTX_ARG V(faces)[3u * tri + 2u]);
+    return t;
+}
+
+STRUCT(Hit) { float t; int prim; };
+
+INLINE Hit no_hit(float tmax) { Hit h; h.t = tmax; h.prim = -1; return h; }
+
+// Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
+// gives the same ids whatever order the candidates arrive in (fill order is not deterministic).
+INLINE Hit closer(Hit best, float t, int prim, float tmin) {
+    if (t >= tmin && (t < best.t || (t == best.t && (best.prim < 0 || prim < best.prim)))) {
+        best.t = t;
+        best.prim = prim;
+    }
+    return best;
+}

@@ -1,0 +1,38 @@
+// GLSL side of the shared kernel dialect (shaders/common/*.h are written against these names).
+// The common code is a C subset: no pointers, no out-params, no vector compares, casts via U32()/F32().
+#define float2 vec2
+#define float3 vec3
+#define float4 vec4
+#define int2 ivec2
+#define int3 ivec3
+#define int4 ivec4
+#define uint2 uvec2
+#define uint3 uvec3
+#define uint4 uvec4
+#define make_float2(x, y) vec2(x, y)
+#define make_float3(x, y, z) vec3(x, y, z)
+#define make_float4(x, y, z, w) vec4(x, y, z, w)
+#define make_int3(x, y, z) ivec3(x, y, z)
+#define make_uint4(x, y, z, w) uvec4(x, y, z, w)
+#define make_uint3(x, y, z) uvec3(x, y, z)
+#define U32(x) uint(x)
+#define I32(x) int(x)
+#define F32(x) float(x)
+#define as_uint(x) floatBitsToUint(x)
+#define as_int(x) floatBitsToInt(x)
+#define as_float(x) uintBitsToFloat(x)
+#define fabs(x) abs(x)
+#define fmin(a, b) min(a, b)
+#define fmax(a, b) max(a, b)
+#define INLINE
+#define STRUCT(name) struct name
+#define INF_F uintBitsToFloat(0x7f800000u)
+// Buffer access: SSBOs are globals in GLSL, so the context parameter is empty.
+#define V(name) name
+#define CTX_PARAM
+#define CTX_ARG
+#define ATOMIC_ADD(lvalue, v) atomicAdd(lvalue, v)
+#define ATOMIC_MIN(lvalue, v) atomicMin(lvalue, v)
+#define ATOMIC_OR(lvalue, v) atomicOr(lvalue, v)
+#define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
+#define LANG_GLSL 1

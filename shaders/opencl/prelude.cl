@@ -1,0 +1,23 @@
+// OpenCL C side of the shared kernel dialect (shaders/common/*.h are written against these names).
+#define make_float2(x, y) ((float2)((x), (y)))
+#define make_float3(x, y, z) ((float3)((x), (y), (z)))
+#define make_float4(x, y, z, w) ((float4)((x), (y), (z), (w)))
+#define make_int3(x, y, z) ((int3)((x), (y), (z)))
+#define make_uint4(x, y, z, w) ((uint4)((x), (y), (z), (w)))
+#define make_uint3(x, y, z) ((uint3)((x), (y), (z)))
+#define U32(x) ((uint)(x))
+#define I32(x) ((int)(x))
+#define F32(x) ((float)(x))
+#define INLINE inline
+#define STRUCT(name) typedef struct name name; struct name
+#define INF_F INFINITY
+// Buffer access: every kernel gets a generated `Ctx` struct holding its __global pointers and
+// scalar arguments; common code reaches them through V(name) and passes the context along.
+#define V(name) (C->name)
+#define CTX_PARAM const Ctx* C,
+#define CTX_ARG C,
+#define ATOMIC_ADD(lvalue, v) atomic_add(&(lvalue), v)
+#define ATOMIC_MIN(lvalue, v) atomic_min(&(lvalue), v)
+#define ATOMIC_OR(lvalue, v) atomic_or(&(lvalue), v)
+#define ATOMIC_XCHG(lvalue, v) atomic_xchg(&(lvalue), v)
+#define LANG_OPENCL 1
