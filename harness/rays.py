@@ -29,3 +29,115 @@ class RaySet:
             h.update(np.ascontiguousarray(self.directions, dtype=np.float32).tobytes())
             self._hash = h.hexdigest()[:16]
         return self._hash
+
+
+# ----------------------------------------------------------------------------------------------
+# generators (kept below the RaySet contract; imports here so the contract above stays untouched)
+
+from collections.abc import Callable  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from harness.scene import Camera, Scene  # noqa: E402
+
+
+class RayError(ValueError):
+    """Bad ray input (unknown ray set name, missing/invalid .npz): one-line message."""
+
+
+def primary_rays(scene: Scene, width: int, height: int, camera: Camera | None = None) -> RaySet:
+    """Pinhole camera rays, one through each pixel centre.
+
+    Row-major with row 0 at the TOP of the image: pixel (x, y) is ray y * width + x.
+    Origins are the eye; directions are unit length (float32).
+    """
+    from harness.scenes import default_camera  # scenes imports trimesh lazily; keep it lazy
+
+    if width <= 0 or height <= 0:
+        raise RayError(f"image size must be positive, got {width}x{height}")
+    cam = camera if camera is not None else default_camera(scene)
+    forward, right, up = _camera_basis(cam)
+    half_h = np.tan(np.radians(cam.fov_deg) / 2)
+    half_w = half_h * width / height
+    # pixel centres in [-1, 1]; the centre pixel of an odd size lands exactly on 0
+    sx = ((np.arange(width) + 0.5) / width) * 2 - 1
+    sy = 1 - ((np.arange(height) + 0.5) / height) * 2  # +1 at the top row
+    px, py = np.meshgrid(sx * half_w, sy * half_h, indexing="xy")
+    dirs = forward + px[..., None] * right + py[..., None] * up
+    dirs = (dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).reshape(-1, 3)
+    origins = np.broadcast_to(np.asarray(cam.eye, dtype=np.float32), dirs.shape)
+    return RaySet(name="primary", origins=np.ascontiguousarray(origins),
+                  directions=dirs.astype(np.float32), width=width, height=height)
+
+
+def _camera_basis(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal forward/right/up (float64) of a camera."""
+    forward = np.subtract(cam.target, cam.eye, dtype=np.float64)
+    length = np.linalg.norm(forward)
+    if not np.isfinite(length) or length == 0:
+        raise RayError(f"camera eye {cam.eye} and target {cam.target} must differ")
+    forward /= length
+    right = np.cross(forward, np.asarray(cam.up, dtype=np.float64))
+    if np.linalg.norm(right) < 1e-9:
+        # looking along `up`: any perpendicular will do, pick one deterministically
+        helper = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        right = np.cross(forward, helper)
+    right /= np.linalg.norm(right)
+    return forward, right, np.cross(right, forward)
+
+
+def load_rays_file(path: str) -> RaySet:
+    """Rays from a `.npz` with (N, 3) arrays `origins` and `directions`.
+
+    Directions are normalized on load, so hit distances are in scene units of length (as for
+    every RaySet), whatever the lengths stored in the file were.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise RayError(f"ray file not found: {path}")
+    try:
+        with np.load(p, allow_pickle=False) as data:
+            missing = [k for k in ("origins", "directions") if k not in data.files]
+            if missing:
+                raise RayError(f"{path}: missing array(s) {', '.join(missing)} "
+                               f"(found: {', '.join(data.files) or 'none'})")
+            origins, directions = data["origins"], data["directions"]
+    except RayError:
+        raise
+    except Exception as err:  # not a zip, truncated, pickled objects, ...
+        raise RayError(f"cannot read {path} as .npz: {' '.join(str(err).split())}") from None
+    for key, arr in (("origins", origins), ("directions", directions)):
+        if arr.dtype.kind not in "fiu" or arr.ndim != 2 or arr.shape[1] != 3:
+            raise RayError(f"{path}: {key} must be a numeric (N, 3) array, "
+                           f"got {arr.dtype} {arr.shape}")
+    if origins.shape != directions.shape:
+        raise RayError(f"{path}: origins {origins.shape} and directions {directions.shape} differ")
+    if origins.shape[0] == 0:
+        raise RayError(f"{path}: no rays")
+    # checked in float32, the precision backends and Embree see
+    with np.errstate(over="ignore"):  # values beyond float32 range become Inf, caught below
+        origins = origins.astype(np.float32)
+        directions = directions.astype(np.float32)
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
+        raise RayError(f"{path}: origins or directions contain NaN/Inf")
+    length = np.linalg.norm(directions.astype(np.float64), axis=1, keepdims=True)
+    if (length == 0).any():
+        raise RayError(f"{path}: {int((length == 0).sum())} directions have zero length "
+                       f"(first: ray {int(np.argmax(length == 0))})")
+    return RaySet(name=p.stem, origins=np.ascontiguousarray(origins),
+                  directions=(directions / length).astype(np.float32))
+
+
+# name -> generator(scene, width, height, camera); other ray sets register here
+RAY_SETS: dict[str, Callable[..., RaySet]] = {"primary": primary_rays}
+
+
+def make_rays(name_or_path: str, scene: Scene, width: int, height: int,
+              camera: Camera | None = None) -> RaySet:
+    """A registered ray set by name, or a `.npz` ray file."""
+    generator = RAY_SETS.get(name_or_path)
+    if generator is not None:
+        return generator(scene, width, height, camera)
+    if name_or_path.lower().endswith(".npz"):
+        return load_rays_file(name_or_path)
+    raise RayError(f"unknown ray set {name_or_path!r}: use one of "
+                   f"{', '.join(sorted(RAY_SETS))} or a path to a .npz file")
