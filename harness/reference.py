@@ -1,0 +1,272 @@
+"""Reference conservative voxelizer (numpy, float64). The GPU voxelizers are tested against it.
+
+Grid convention (shared with the GPU kernels)
+---------------------------------------------
+A grid is `origin` (3,) float, `voxel_size` (3,) float (> 0; non-cubic voxels allowed) and
+`resolution` (rx, ry, rz) ints (non-cubic grids allowed).
+
+- Voxel (i, j, k) covers origin + [i, i+1] x [j, j+1] x [k, k+1] * voxel_size (closed box).
+- Linear voxel index = i + rx * (j + ry * k)   (x fastest, z slowest).
+- Triangles are mapped to grid space, p' = (p - origin) / voxel_size, where voxels are unit
+  cubes. The overlap test is done there against the box [i-eps, i+1+eps] x [j-eps, j+1+eps] x
+  [k-eps, k+1+eps]: `eps` (grid units) makes the result conservative despite rounding, so a
+  triangle lying exactly on a voxel boundary (or touching a corner) is in the voxels on both
+  sides.
+- A triangle is in a voxel iff it overlaps that eps-expanded box by the separating-axis test of
+  Akenine-Moeller, "Fast 3D Triangle-Box Overlap Testing" (JGT 2001): 13 axes = the 3 box
+  normals, the triangle normal, and the 9 cross products of triangle edges with box axes.
+- Only voxels inside the resolution are produced; triangles (or parts) outside are clipped.
+- Degenerate triangles (segments, points) are kept: their zero normal and zero cross products
+  project everything to 0, which never separates, and the remaining axes (box normals and
+  segment-direction x box axes) are exactly the separating axes of a segment or point against a
+  box. So a degenerate triangle is in every voxel its segment or point touches.
+
+Result format (CSR, what the GPU count / scan / fill passes produce)
+---------------------------------------------------------------------
+`offsets` (rx*ry*rz + 1,) int64: exclusive prefix sum of the per-voxel counts.
+`tri_ids` (offsets[-1],) int32: triangle indices of voxel v in tri_ids[offsets[v]:offsets[v+1]],
+ascending within a voxel.
+
+Comparing a GPU result (float32) with this reference (float64)
+--------------------------------------------------------------
+Float32 arithmetic moves the decision for (voxel, triangle) pairs whose triangle passes within
+about one rounding error of the eps-expanded box. `borderline_pairs(..., eps, delta)` lists the
+pairs in voxelize(eps + delta) but not in voxelize(eps - delta); a correct GPU result G satisfies
+voxelize(eps - delta) <= G <= voxelize(eps + delta) (as pair sets), i.e. it differs from
+voxelize(eps) only on borderline pairs. `compare_to_reference` does this check.
+`suggested_delta(resolution)` gives a delta for float32 kernels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# Candidate (voxel, triangle) pairs tested per batch: bounds the temporary arrays (~100 MB).
+CANDIDATE_BUDGET = 1 << 20
+
+
+# --- public API ------------------------------------------------------------------------------
+
+
+def voxelize(vertices, faces, origin, voxel_size, resolution, eps: float = 1e-4):
+    """Conservative voxelization: (offsets int64, tri_ids int32) in CSR form (module docstring)."""
+    origin, voxel_size, res = _grid(origin, voxel_size, resolution)
+    half = 0.5 + float(eps)
+    if half <= 0.0:
+        raise ValueError(f"eps={eps} shrinks the voxel box to nothing")
+    tris = _grid_space_triangles(vertices, faces, origin, voxel_size)
+    lo, ext = _candidate_boxes(tris, res, float(eps))
+    counts = ext.prod(axis=1)
+
+    voxel_parts, tri_parts = [], []
+    for first, last, skip, take in _batches(counts, CANDIDATE_BUDGET):
+        voxels, local = _overlapping_candidates(
+            tris[first:last], lo[first:last], ext[first:last], skip, take, res, half
+        )
+        voxel_parts.append(voxels)
+        tri_parts.append(local + first)
+    voxels = np.concatenate(voxel_parts) if voxel_parts else np.zeros(0, np.int64)
+    tri_ids = np.concatenate(tri_parts) if tri_parts else np.zeros(0, np.int64)
+    return _to_csr(voxels, tri_ids, int(np.prod(res)))
+
+
+def pairs(offsets, tri_ids) -> np.ndarray:
+    """(M, 2) int64 array of (linear voxel index, triangle id), in CSR order."""
+    offsets = np.asarray(offsets, dtype=np.int64)
+    voxels = np.repeat(np.arange(offsets.size - 1, dtype=np.int64), np.diff(offsets))
+    return np.stack([voxels, np.asarray(tri_ids, dtype=np.int64)], axis=1)
+
+
+def voxel_sets(offsets, tri_ids) -> set[tuple[int, int]]:
+    """Python set of (voxel, tri) pairs (convenient for small tests and error messages)."""
+    return set(map(tuple, pairs(offsets, tri_ids).tolist()))
+
+
+def borderline_pairs(vertices, faces, origin, voxel_size, resolution, eps: float, delta: float):
+    """(M, 2) int64 pairs in voxelize(eps + delta) but not in voxelize(eps - delta).
+
+    These are the only pairs on which a float32 voxelizer using `eps` may legitimately differ
+    from the float64 reference: the triangle passes within `delta` grid units (measured along
+    the separating axes) of the eps-expanded voxel box.
+    """
+    inner, outer = _inner_outer(vertices, faces, origin, voxel_size, resolution, eps, delta)
+    n_tri = max(len(np.asarray(faces)), 1)
+    keep = np.setdiff1d(_keys(outer, n_tri), _keys(inner, n_tri), assume_unique=True)
+    return _unkey(keep, n_tri)
+
+
+def compare_to_reference(
+    offsets, tri_ids, vertices, faces, origin, voxel_size, resolution, eps: float, delta: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Check a voxelization G (CSR, e.g. read back from a GPU) against the reference.
+
+    Returns (missing, extra), both (M, 2) int64 (voxel, tri) pairs: `missing` are in
+    voxelize(eps - delta) but not in G (a conservative voxelizer must have them), `extra` are in
+    G but not in voxelize(eps + delta). Both empty means G is correct. The order of ids within a
+    voxel is free (a GPU fill pass with atomics writes them in any order); a malformed CSR
+    (wrong length, decreasing offsets, ids out of range, an id twice in a voxel) raises
+    ValueError.
+    """
+    res = _grid(origin, voxel_size, resolution)[2]
+    n_tri = max(len(np.asarray(faces)), 1)
+    got = _csr_keys(offsets, tri_ids, int(np.prod(res)), n_tri)
+    inner, outer = _inner_outer(vertices, faces, origin, voxel_size, resolution, eps, delta)
+    missing = np.setdiff1d(_keys(inner, n_tri), got, assume_unique=True)
+    extra = np.setdiff1d(got, _keys(outer, n_tri), assume_unique=True)
+    return _unkey(missing, n_tri), _unkey(extra, n_tri)
+
+
+def suggested_delta(resolution) -> float:
+    """Borderline width (grid units) for comparing float32 kernels: 2^-24 relative rounding on
+    grid-space coordinates up to max(resolution), times a safety factor of 64 for the few
+    operations of the transform and the SAT (a heuristic, not a proof)."""
+    return 64.0 * 2.0**-24 * float(max(np.atleast_1d(resolution).max(), 1))
+
+
+# --- grid and triangles ----------------------------------------------------------------------
+
+
+def _grid(origin, voxel_size, resolution):
+    origin = np.broadcast_to(np.asarray(origin, dtype=np.float64), (3,)).copy()
+    voxel_size = np.broadcast_to(np.asarray(voxel_size, dtype=np.float64), (3,)).copy()
+    res = np.broadcast_to(np.asarray(resolution, dtype=np.int64), (3,)).copy()
+    if np.any(res <= 0) or np.any(voxel_size <= 0) or not np.all(np.isfinite(voxel_size)):
+        raise ValueError(f"bad grid: voxel_size={voxel_size}, resolution={res}")
+    if not np.all(np.isfinite(origin)):
+        raise ValueError(f"bad grid origin {origin}")
+    return origin, voxel_size, res
+
+
+def _grid_space_triangles(vertices, faces, origin, voxel_size) -> np.ndarray:
+    """(T, 3, 3) float64 corners in grid space (voxels are unit cubes)."""
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    tris = (vertices[faces] - origin) / voxel_size
+    if not np.all(np.isfinite(tris)):
+        raise ValueError("non-finite triangle corner")
+    return tris
+
+
+def _candidate_boxes(tris, res, eps):
+    """Per triangle: first candidate voxel (T,3) and extent (T,3) of the voxel range whose
+    eps-boxes overlap the triangle's bounding box (the 3 box-normal axes of the SAT), clipped
+    to the grid. Voxel i's box [i-eps, i+1+eps] meets [mn, mx] iff mn-1-eps <= i <= mx+eps."""
+    mn, mx = tris.min(axis=1), tris.max(axis=1)
+    lo = np.ceil(mn - 1.0 - eps)
+    hi = np.floor(mx + eps)
+    lo = np.clip(lo, 0, res).astype(np.int64)  # clip in float first: no int overflow
+    hi = np.clip(hi, -1, res - 1).astype(np.int64)
+    ext = np.maximum(hi - lo + 1, 0)
+    return lo, ext
+
+
+def _sat_axes(tris):
+    """The 10 non-box-normal SAT axes per triangle: (T, 10, 3) = normal, then e_k x unit_j.
+
+    Any vector is a valid candidate axis, so rounding in the axes themselves cannot make the
+    test wrong; degenerate triangles give (near-)zero axes, which never separate.
+    """
+    v0, v1, v2 = tris[:, 0], tris[:, 1], tris[:, 2]
+    edges = np.stack([v1 - v0, v2 - v1, v0 - v2], axis=1)  # (T, 3, 3)
+    normal = np.cross(edges[:, 0], edges[:, 1])
+    unit = np.eye(3)
+    cross = np.cross(edges[:, :, None, :], unit[None, None, :, :])  # (T, 3 edges, 3 units, 3)
+    return np.concatenate([normal[:, None, :], cross.reshape(-1, 9, 3)], axis=1)
+
+
+def _axis_intervals(tris, axes, half):
+    """For every axis a: (mid, rad) such that the triangle and the box of half-size `half`
+    centred at c overlap along a iff |a.c - mid| <= rad (projected intervals intersect)."""
+    proj = np.einsum("tac,tvc->tav", axes, tris)  # (T, 10, 3 vertices)
+    pmin, pmax = proj.min(axis=2), proj.max(axis=2)
+    box_radius = half * np.abs(axes).sum(axis=2)
+    return 0.5 * (pmin + pmax), 0.5 * (pmax - pmin) + box_radius
+
+
+# --- candidate enumeration and test ----------------------------------------------------------
+
+
+def _batches(counts, budget):
+    """Split the concatenated candidate lists of all triangles into windows of <= budget
+    candidates. Yields (first, last, skip, take): triangles [first, last) and, per triangle in
+    that range, how many leading candidates to skip and how many to take. A triangle with more
+    candidates than the budget is split over several windows."""
+    ends = np.cumsum(counts)
+    starts = ends - counts
+    total = int(ends[-1]) if len(ends) else 0
+    for w0 in range(0, total, budget):
+        w1 = min(w0 + budget, total)
+        first = int(np.searchsorted(ends, w0, side="right"))
+        last = int(np.searchsorted(starts, w1, side="left"))
+        s, e = starts[first:last], ends[first:last]
+        skip = np.maximum(w0 - s, 0)
+        take = np.minimum(e, w1) - s - skip
+        yield first, last, skip, take
+
+
+def _overlapping_candidates(tris, lo, ext, skip, take, res, half):
+    """Run the SAT on the given candidates; return (linear voxel ids, local triangle ids) of
+    the overlapping pairs, triangle-major."""
+    owner = np.repeat(np.arange(len(tris)), take)
+    first_of_owner = np.cumsum(take) - take
+    rank = np.arange(owner.size) - np.repeat(first_of_owner - skip, take)  # index in the box
+    ex, ey = ext[owner, 0], ext[owner, 1]
+    i = lo[owner, 0] + rank % ex
+    rest = rank // ex
+    j = lo[owner, 1] + rest % ey
+    k = lo[owner, 2] + rest // ey
+
+    axes = _sat_axes(tris)
+    mid, rad = _axis_intervals(tris, axes, half)
+    centre = (i + 0.5, j + 0.5, k + 0.5)
+    keep = np.ones(owner.size, dtype=bool)
+    for a in range(axes.shape[1]):
+        along = sum(axes[owner, a, c] * centre[c] for c in range(3))
+        keep &= np.abs(along - mid[owner, a]) <= rad[owner, a]
+    voxels = i + res[0] * (j + res[1] * k)
+    return voxels[keep], owner[keep]
+
+
+def _to_csr(voxels, tri_ids, voxel_count):
+    # Candidates arrive triangle-major with ascending triangle ids, so a stable sort by voxel
+    # leaves the ids ascending within each voxel.
+    order = np.argsort(voxels, kind="stable")
+    counts = np.bincount(voxels, minlength=voxel_count)
+    offsets = np.zeros(voxel_count + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    return offsets, tri_ids[order].astype(np.int32)
+
+
+# --- comparison helpers ----------------------------------------------------------------------
+
+
+def _inner_outer(vertices, faces, origin, voxel_size, resolution, eps, delta):
+    if delta < 0:
+        raise ValueError("delta must be >= 0")
+    inner = pairs(*voxelize(vertices, faces, origin, voxel_size, resolution, eps - delta))
+    outer = pairs(*voxelize(vertices, faces, origin, voxel_size, resolution, eps + delta))
+    return inner, outer
+
+
+def _keys(p, n_tri):
+    """Unique sortable int64 key per (voxel, tri) pair (sorted when p is in CSR order)."""
+    return p[:, 0] * n_tri + p[:, 1]
+
+
+def _unkey(keys, n_tri):
+    return np.stack([keys // n_tri, keys % n_tri], axis=1)
+
+
+def _csr_keys(offsets, tri_ids, voxel_count, n_tri):
+    """Sorted unique keys of a CSR voxelization, after checking its structure."""
+    offsets = np.asarray(offsets, dtype=np.int64)
+    tri_ids = np.asarray(tri_ids, dtype=np.int64)
+    if offsets.shape != (voxel_count + 1,) or offsets[0] != 0 or offsets[-1] != tri_ids.size:
+        raise ValueError("CSR offsets have the wrong length or ends")
+    if np.any(np.diff(offsets) < 0):
+        raise ValueError("CSR offsets decrease")
+    if tri_ids.size and (tri_ids.min() < 0 or tri_ids.max() >= n_tri):
+        raise ValueError("triangle id out of range")
+    keys = np.sort(_keys(pairs(offsets, tri_ids), n_tri))
+    if keys.size > 1 and np.any(keys[1:] == keys[:-1]):
+        raise ValueError("a triangle id appears twice in one voxel")
+    return keys
