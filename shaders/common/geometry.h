@@ -34,24 +34,53 @@ INLINE float2 ray_box(float3 o, float3 inv_d, float3 d, float3 lo, float3 hi) {
     return make_float2(t0, t1);
 }
 
-// Moeller-Trumbore ray/triangle test (1997). Returns t, or INF_F for a miss.
-// Edges and vertices count as inside (u, v >= 0, u + v <= 1), so a ray through a shared edge
-// hits one of the two triangles; the verifier treats a different id at the same t as a tie.
-INLINE float ray_triangle(float3 o, float3 d, float3 v0, float3 v1, float3 v2) {
-    float3 e1 = v1 - v0;
-    float3 e2 = v2 - v0;
-    float3 p = cross(d, e2);
-    float det = dot(e1, p);
-    if (det == 0.0f) return INF_F;  // parallel or degenerate: no single hit point
-    float inv_det = 1.0f / det;
-    float3 s = o - v0;
-    float u = dot(s, p) * inv_det;
-    if (u < 0.0f || u > 1.0f) return INF_F;
-    float3 q = cross(s, e1);
-    float v = dot(d, q) * inv_det;
-    if (v < 0.0f || u + v > 1.0f) return INF_F;
-    float t = dot(e2, q) * inv_det;
+// Watertight ray/triangle test (Woop, Benthin & Wald, JCGT 2013), the test Embree uses: the
+// ray is sheared so it runs along +z, edge functions are evaluated in that 2D space, and a
+// point on an edge shared by two triangles gives the same edge value (opposite sign) in
+// both, so no ray slips through a shared edge (Moeller-Trumbore does, at box corners).
+// The per-ray part (axis permutation and shear) is computed once per ray.
+STRUCT(WRay) { float3 o; int kx; int ky; int kz; float sx; float sy; float sz; };
+
+INLINE WRay make_wray(float3 o, float3 d) {
+    WRay r;
+    r.o = o;
+    float ax = fabs(d.x), ay = fabs(d.y), az = fabs(d.z);
+    r.kz = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
+    r.kx = (r.kz + 1) % 3;
+    r.ky = (r.kx + 1) % 3;
+    float dz = comp3(d, r.kz);
+    if (dz < 0.0f) { int t = r.kx; r.kx = r.ky; r.ky = t; }  // keep the winding
+    r.sx = comp3(d, r.kx) / dz;
+    r.sy = comp3(d, r.ky) / dz;
+    r.sz = 1.0f / dz;
+    return r;
+}
+
+INLINE float3 wray_vertex(WRay r, float3 v) {
+    float3 p = v - r.o;
+    float pz = comp3(p, r.kz);
+    return make_float3(comp3(p, r.kx) - r.sx * pz, comp3(p, r.ky) - r.sy * pz, r.sz * pz);
+}
+
+// Returns t (distance along the unit direction), or INF_F for a miss. Edges and vertices
+// count as inside, so a ray through a shared edge hits one of the two triangles (a tie).
+INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
+    float3 a = wray_vertex(r, v0);
+    float3 b = wray_vertex(r, v1);
+    float3 c = wray_vertex(r, v2);
+    PRECISE float u = c.x * b.y - c.y * b.x;
+    PRECISE float v = a.x * c.y - a.y * c.x;
+    PRECISE float w = b.x * a.y - b.y * a.x;
+    if ((u < 0.0f || v < 0.0f || w < 0.0f) && (u > 0.0f || v > 0.0f || w > 0.0f)) return INF_F;
+    float det = u + v + w;
+    if (det == 0.0f) return INF_F;  // ray in the triangle's plane, or a degenerate triangle
+    float t = (u * a.z + v * b.z + w * c.z) / det;
     return t;
+}
+
+// Convenience form for one-off tests (traversals build the WRay once per ray).
+INLINE float ray_triangle(float3 o, float3 d, float3 v0, float3 v1, float3 v2) {
+    return ray_triangle_wt(make_wray(o, d), v0, v1, v2);
 }
 
 // --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------

@@ -108,6 +108,7 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
 // otherwise end the walk with a hit that a later-listed, nearer triangle in the next voxel beats.
 INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
     Hit best = no_hit(tmax);
+    WRay wr = make_wray(o, d);
     float3 og = to_grid(CTX_ARG o);
     float3 dg = d * V(grid_inv_voxel).xyz;
     float3 inv = make_float3(safe_rcp(dg.x), safe_rcp(dg.y), safe_rcp(dg.z));
@@ -137,7 +138,7 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
             for (uint i = begin; i < end; ++i) {
                 uint tri = V(voxel_tris)[i];
                 Triangle T = load_triangle(CTX_ARG tri);
-                float t = ray_triangle(o, d, T.a, T.b, T.c);
+                float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                 tests += 1u;
                 if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
             }

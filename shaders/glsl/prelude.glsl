@@ -25,6 +25,8 @@
 #define fmin(a, b) min(a, b)
 #define fmax(a, b) max(a, b)
 #define INLINE
+// `precise` keeps the compiler from fusing or reordering (the watertight test needs exact edges).
+#define PRECISE precise
 #define STRUCT(name) struct name
 #define INF_F uintBitsToFloat(0x7f800000u)
 // Buffer access: SSBOs are globals in GLSL, so the context parameter is empty.

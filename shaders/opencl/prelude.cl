@@ -1,3 +1,7 @@
+// No fused multiply-add contraction: the watertight triangle test needs its edge functions
+// evaluated exactly as written (antisymmetric across a shared edge).
+#pragma OPENCL FP_CONTRACT OFF
+#define PRECISE
 // OpenCL C side of the shared kernel dialect (shaders/common/*.h are written against these names).
 #define make_float2(x, y) ((float2)((x), (y)))
 #define make_float3(x, y, z) ((float3)((x), (y), (z)))
