@@ -7,6 +7,7 @@
 """
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -59,6 +60,9 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
                                                         geometry, params)
     device.finish()
     seconds = time.perf_counter() - t0
+    defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
+    if defect.startswith("drop-reference"):
+        _plant_dropped_reference(device, buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
     return Built(structure, device, params, geometry, scene_buffers, buffers, uniforms, trace_spec,
                  build_seconds=seconds, stats=stats)
 
@@ -113,3 +117,26 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5) -> Timing:
     timing = d.time_dispatch(built.trace_spec, rays.count, bufs, built.uniforms, warmup, repeats)
     _release(d, bufs, ("rays", "hit_prim", "hit_t"))
     return timing
+
+
+def _plant_dropped_reference(device: Device, buffers: dict, scene, victim: int | None) -> None:
+    """Test-only fault injection (env LSBENCH_PLANT_DEFECT=drop-reference[:TRI]): drop one
+    triangle (TRI, default the one listed in most voxels) from the first voxel that lists it,
+    overwriting its entry with another triangle of that list, so tests can show that the Embree
+    gate catches a structure that lost a reference."""
+    if "voxel_offsets" not in buffers or "voxel_tris" not in buffers:
+        return
+    offsets = device.read(buffers["voxel_offsets"], np.uint32).astype(np.int64)
+    tris = device.read(buffers["voxel_tris"], np.uint32)
+    if len(tris) == 0:
+        return
+    if victim is None:
+        victim = int(np.argmax(np.bincount(tris)))
+    where = np.nonzero(tris == victim)[0]
+    if len(where) == 0:
+        return
+    pos = int(where[0])
+    voxel = int(np.searchsorted(offsets, pos, side="right") - 1)
+    others = [int(x) for x in tris[offsets[voxel]:offsets[voxel + 1]] if x != victim]
+    tris[pos] = others[0] if others else (victim + 1) % scene.triangle_count
+    buffers["voxel_tris"] = device.upload("voxel_tris", tris)

@@ -2,10 +2,11 @@
 n_tris, geometry, params) -> (buffers, uniforms, trace_spec, stats)."""
 from __future__ import annotations
 
-from . import grid
+from . import grid, grid_ls
 
 STRUCTURES = {
     "grid": grid,
+    "grid-ls": grid_ls,
 }
 
 # Octrees need a cubic, power-of-two grid over the scene's bounding cube.

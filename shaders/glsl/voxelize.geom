@@ -1,7 +1,7 @@
 // Raster voxelizer, stage 2 (thesis 3.4): project the triangle along its dominant normal axis
 // and dilate its footprint so that every voxel column it touches gets a fragment. llvmpipe has
 // no conservative rasterization, so the footprint is the triangle's projected bounds grown by
-// half a pixel plus the overlap epsilon: a pixel centre lies inside exactly when its column
+// half a pixel plus the overlap epsilon (and a snapping margin): a pixel centre lies inside exactly when its column
 // square (grown by eps) meets the bounds. Over-covered columns are rejected per fragment by the
 // exact triangle/box test.
 layout(points) in;
@@ -17,7 +17,9 @@ void main() {
     vec3 n = abs(cross(b - a, c - a));
     int w = (n.x >= n.y && n.x >= n.z) ? 0 : (n.y >= n.z ? 1 : 2);
     int u = (w + 1) % 3, v = (w + 2) % 3;
-    float r = 0.5 + box_eps + 1e-3;
+    // + 1/32 px: rasterizers snap vertices to 1/256 px (llvmpipe, NVIDIA), which would eat a
+    // smaller margin and put a column centre exactly on the footprint edge.
+    float r = 0.5 + box_eps + 1.0 / 32.0;
     vec2 lo = vec2(min(a[u], min(b[u], c[u])), min(a[v], min(b[v], c[v]))) - vec2(r);
     vec2 hi = vec2(max(a[u], max(b[u], c[u])), max(a[v], max(b[v], c[v]))) + vec2(r);
     // Footprint entirely off the grid: nothing to draw.

@@ -1,0 +1,102 @@
+"""`grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (thesis 3.3.3,
+5.1, Algorithm 2). Build: the grid's voxel lists (grid.build_voxel_lists), a compaction of the
+voxels that get a Line Space (flags -> scan: voxel -> Line Space index), their cells (voxel box +
+list range), then linespace.build_linespaces. Trace: shaders/common/grid_ls.h.
+
+BuildParams.ls_n = N (patches per face edge, >= 1; 0 is taken as 1 here, grid-ls always has a
+Line Space). BuildParams.ls_min_candidates = K: only voxels with more than K candidates get a
+Line Space, the others keep their plain list (stats: linespace_skipped_voxels and the offsets
+memory saved)."""
+from __future__ import annotations
+
+from ..device import Device
+from ..kernels import GRID_UNIFORMS, RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from . import grid, linespace
+from .base import BuildParams, GridGeometry
+
+GLS_HEADERS = linespace.LS_HEADERS + ("grid_ls.h",)
+GLS_BUILD_HEADERS = linespace.LS_HEADERS_NO_SCENE + ("grid_ls.h",)
+
+GLS_FLAGS = KernelSpec(
+    "gls_flags", GLS_BUILD_HEADERS, "gls_flags_kernel",
+    (Buf("voxel_offsets", "uint", "r"), Buf("ls_flags", "uint", "w")),
+    linespace.LS_UNIFORMS + (Uniform("ls_min_count", "uint"),))
+GLS_CELLS = KernelSpec(
+    "gls_cells", GLS_BUILD_HEADERS, "gls_cells_kernel",
+    (Buf("voxel_offsets", "uint", "r"), Buf("ls_ids", "uint", "r"), Buf("ls_cell_boxes", "float4", "w"),
+     Buf("ls_cell_ranges", "uint", "w")),
+    linespace.LS_UNIFORMS)
+TRACE_GRID_LS = KernelSpec(
+    "trace_grid_ls", GLS_HEADERS, "trace_grid_ls_kernel",
+    SCENE_BUFFERS + (Buf("voxel_offsets", "uint", "r"), Buf("voxel_tris", "uint", "r"),
+                     Buf("ls_ids", "uint", "r"), Buf("ls_shaft_offsets", "uint", "r"),
+                     Buf("ls_shaft_tris", "uint", "r")) + RAY_BUFFERS,
+    linespace.LS_UNIFORMS)
+
+
+def prepare(device: Device) -> None:
+    grid.prepare(device)
+    linespace.prepare(device)
+    for spec in (GLS_FLAGS, GLS_CELLS):
+        device.program(spec) if device.backend == "glsl" else device.kernel(spec)
+
+
+def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+          params: BuildParams):
+    n = linespace.check_n(params.ls_n or 1)
+    k = int(params.ls_min_candidates)
+    if k < 0:
+        raise ValueError(f"ls_min_candidates must be >= 0, got {k}")
+    buffers, stats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    u = dict(linespace.uniforms(geometry, n), ls_min_count=k)
+    n_vox = geometry.voxel_count
+    # Compaction: voxel -> Line Space index (exclusive scan of the flags; see grid_ls.h).
+    flags = device.alloc("ls_flags", 4 * n_vox, zero=False)
+    device.dispatch(GLS_FLAGS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_flags": flags}, u)
+    ls_ids, n_cells = device.exclusive_scan(flags, n_vox, "ls_ids")
+    device.release(flags)
+    non_empty = _non_empty_voxels(device, buffers["voxel_offsets"], n_vox, u)
+    boxes = device.alloc("ls_cell_boxes", 32 * max(n_cells, 1), zero=False)
+    ranges = device.alloc("ls_cell_ranges", 8 * max(n_cells, 1), zero=False)
+    device.dispatch(GLS_CELLS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_ids": ls_ids,
+                                      "ls_cell_boxes": boxes, "ls_cell_ranges": ranges}, u)
+    cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
+    try:
+        ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n)
+    except Exception:
+        for b in (boxes, ranges, ls_ids, buffers["voxel_offsets"], buffers["voxel_tris"]):
+            device.release(b)
+        raise
+    device.release(boxes)
+    device.release(ranges)
+    buffers["ls_ids"] = ls_ids
+    buffers.update(ls.buffers)
+    if n_cells == non_empty:
+        # Every non-empty voxel reads its Line Space: the plain lists are never read again.
+        device.release(buffers["voxel_tris"])
+        buffers["voxel_tris"] = device.alloc("voxel_tris", 4)
+    skipped = non_empty - n_cells
+    stats.update(ls.stats)
+    stats.update({
+        "non_empty_voxels": non_empty,
+        "linespace_voxels": n_cells,
+        "linespace_skipped_voxels": skipped,
+        "ls_min_candidates": k,
+        # Shaft offsets the skipped voxels do not need (their candidates are not counted here:
+        # compare memory_bytes with a K = 0 build for the whole saving).
+        "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell,
+        "bytes": {name: b.used for name, b in buffers.items()},
+    })
+    return buffers, u, TRACE_GRID_LS, stats
+
+
+def _non_empty_voxels(device: Device, voxel_offsets, n_vox: int, u: dict) -> int:
+    """Voxels with at least one candidate (for the stats), counted on the device with the same
+    flags kernel at K = 0."""
+    flags = device.alloc("ls_flags0", 4 * n_vox, zero=False)
+    device.dispatch(GLS_FLAGS, n_vox, {"voxel_offsets": voxel_offsets, "ls_flags": flags},
+                    dict(u, ls_min_count=0))
+    scan, total = device.exclusive_scan(flags, n_vox, "ls_flags0.scan")
+    device.release(flags)
+    device.release(scan)
+    return total

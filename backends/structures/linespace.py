@@ -1,0 +1,163 @@
+"""Candidate-list Line Spaces for a set of cells (thesis 3.3.3, 4, 5.1), built on the device.
+
+Written once for every structure that puts Line Spaces into its cells: `grid-ls` passes the
+voxels that hold candidates, a later `svo-ls` / `esvo-ls` passes its octree leaves. A cell is a
+box (grid space, see shaders/common/grid.h) plus a range of a triangle-id list:
+
+    cells = Cells(count, boxes, ranges, tris, references)
+        boxes  : float4 buffer, 2 per cell: (lo.xyz, 0), (hi.xyz, 0) in grid space
+        ranges : uint buffer, 2 per cell: begin, end into `tris`
+        tris   : uint buffer of triangle ids (e.g. the grid's voxel_tris)
+        references : sum of the cells' list lengths (an upper bound is fine: it only decides
+                     whether the 32-bit overflow check has to run)
+    ls = build_linespaces(device, scene_buffers, geometry, cells, n)
+    ls.buffers -> {"ls_shaft_offsets": CSR offsets, cells * 15 N^4 + 1 entries,
+                   "ls_shaft_tris": candidate ids}
+    ls.stats   -> shafts, non_empty_shafts, candidate_references, ...
+
+Shaft s of cell c has candidates ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. [.. + 1]];
+the traversal finds s with ls_shaft_id() of shaders/common/linespace.h (Listing 1) from the
+ray's entry and exit face and patch in cell-local coordinates.
+
+Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
+(2) count: one work item per (cell, shaft) clips each of the cell's triangles against the
+shaft (Sutherland-Hodgman, conservative margin LS_EPS); (3) exclusive scan; (4) fill, same test,
+writing in list order. Offsets are 32-bit: any case past 2^32 - 1 candidates or shafts raises
+DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never truncates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..device import Device, DeviceBuffer, DeviceLimitError
+from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from .base import GridGeometry
+
+LS_HEADERS = ("geometry.h", "scene.h", "grid.h", "linespace.h")
+# Kernels that bind no scene buffers leave scene.h out (it reads vertices/faces).
+LS_HEADERS_NO_SCENE = ("geometry.h", "grid.h", "linespace.h")
+LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "uint"),
+                               Uniform("ls_eps", "float"))
+LS_MAX_PLANES = 10  # must match shaders/common/linespace.h
+# Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
+# float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
+LS_EPS = 1e-3
+UINT32_MAX = 2**32 - 1
+
+LS_PLANES = KernelSpec(
+    "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS,
+    defines=(("LS_PLANES_KERNEL", "1"),))
+_CELL_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_cell_boxes", "float4", "r"),
+                 Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"))
+LS_COUNT = KernelSpec(
+    "ls_count", LS_HEADERS, "ls_shaft_kernel",
+    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_counts", "uint", "w"), Buf("ls_stats", "uint", "rw")),
+    LS_UNIFORMS)
+LS_FILL = KernelSpec(
+    "ls_fill", LS_HEADERS, "ls_shaft_kernel",
+    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
+    LS_UNIFORMS, defines=(("LS_FILL", "1"),))
+LS_CHECK = KernelSpec(
+    "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
+    (Buf("ls_check_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
+
+BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK)
+
+
+def shafts_per_cell(n: int) -> int:
+    """15 N^4: 15 unordered pairs of different faces, N^2 x N^2 patch pairs each (3.3.3)."""
+    return 15 * n**4
+
+
+@dataclass
+class Cells:
+    count: int
+    boxes: DeviceBuffer  # float4 x 2 per cell, grid space
+    ranges: DeviceBuffer  # uint x 2 per cell: begin, end into tris
+    tris: DeviceBuffer  # uint triangle ids
+    references: int  # sum (or an upper bound) of the cells' list lengths
+
+
+@dataclass
+class LineSpaces:
+    n: int
+    shafts_per_cell: int
+    buffers: dict[str, DeviceBuffer]
+    stats: dict = field(default_factory=dict)
+
+
+def uniforms(geometry: GridGeometry, n: int) -> dict:
+    return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
+
+
+def prepare(device: Device) -> None:
+    for spec in BUILD_SPECS:
+        device.program(spec) if device.backend == "glsl" else device.kernel(spec)
+
+
+def check_n(n: int) -> int:
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"Line Space needs ls_n >= 1 patches per face edge, got {n}")
+    return n
+
+
+def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
+                     n: int) -> LineSpaces:
+    """Line Spaces of all cells: count -> scan -> fill, all on the device."""
+    n = check_n(n)
+    per_cell = shafts_per_cell(n)
+    n_shafts = cells.count * per_cell
+    if n_shafts + 1 > UINT32_MAX:
+        raise DeviceLimitError(
+            f"{cells.count} Line Spaces x {per_cell} shafts = {n_shafts} shafts overflow 32-bit "
+            "shaft indices (uint, 2^32 - 1)")
+    u = uniforms(geometry, n)
+    planes = device.alloc("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
+    device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
+    stats_buf = device.alloc("ls_stats", 16)
+    cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes,
+                     ls_cell_ranges=cells.ranges, ls_cell_tris=cells.tris)
+    counts = device.alloc("ls_shaft_counts", 4 * max(n_shafts, 1))
+    device.dispatch(LS_COUNT, n_shafts, dict(cell_bufs, ls_shaft_counts=counts, ls_stats=stats_buf), u)
+    offsets, total = device.exclusive_scan(counts, n_shafts, "ls_shaft_offsets")
+    device.release(counts)
+    # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look for
+    # the wrap (a decreasing offset) on the device before trusting `total`.
+    if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
+        flag = device.alloc("ls_check_flag", 4)
+        device.dispatch(LS_CHECK, n_shafts, {"ls_check_offsets": offsets, "ls_check_flag": flag}, u)
+        wrapped = int(device.read(flag, np.uint32, 1)[0])
+        device.release(flag)
+        if wrapped or total >= UINT32_MAX:
+            device.release(offsets)
+            device.release(planes)
+            device.release(stats_buf)
+            raise DeviceLimitError(
+                f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
+                "references: over the 32-bit candidate offsets")
+    try:
+        tris = device.alloc("ls_shaft_tris", 4 * max(total, 1), zero=False)
+    except DeviceLimitError:
+        device.release(offsets)
+        device.release(planes)
+        device.release(stats_buf)
+        raise
+    device.dispatch(LS_FILL, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, ls_shaft_tris=tris), u)
+    device.finish()
+    non_empty = int(device.read(stats_buf, np.uint32, 1)[0])
+    device.release(planes)
+    device.release(stats_buf)
+    tris.used_bytes = 4 * total
+    stats = {
+        "ls_n": n,
+        "shafts_per_cell": per_cell,
+        "linespace_cells": cells.count,
+        "shafts": n_shafts,
+        "non_empty_shafts": non_empty,
+        "candidate_references": total,
+        "ls_bytes": offsets.nbytes + tris.nbytes,
+    }
+    return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)

@@ -1,0 +1,161 @@
+// `esvo`: the octree of svo.h in the compact layout of Laine & Karras (2010) as simplified in
+// thesis 5.2.1: one 32-bit child descriptor per internal node, a 24-bit pointer to its first
+// child above an 8-bit valid mask (Listing 2; no far bit, no contours, no leaf mask: leaves
+// exist only on the last level, so the level says what a child is). The children of a node
+// are contiguous in slot order, child k at pointer + popcount(mask below k); on the last
+// internal level the pointer indexes `leaves`. Needs geometry.h, scene.h and svo.h.
+//
+// Traversal after Laine & Karras, "Efficient Sparse Voxel Octrees" (I3D 2010, appendix code),
+// thesis 5.2.2 (Fig. 16-18): the bounding cube is mapped to [1,2]^3, axes are mirrored so
+// the direction is negative on every axis, and the loop runs PUSH (descend), ADVANCE (next
+// sibling) and POP (the scale of the common ancestor is the highest bit in which the
+// position's float bits changed). Positions and scales are exact binary fractions in the
+// mantissa, so depth is limited to ESVO_SMAX - 1 = 22 levels, far beyond what fits in memory.
+
+#define ESVO_SMAX 23
+
+#if defined(HAS_rays) && defined(HAS_esvo_nodes)
+INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+    Hit best = no_hit(tmax);
+    WRay wr = make_wray(o, d);
+    // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
+    // divided by the cube's edge, shifted by one; the direction divided by the edge and
+    // normalized. t' = t * dlen, so every world distance below is t' / dlen.
+    float res = F32(V(grid_res).x);
+    float inv_edge = V(grid_inv_voxel).x / res;
+    float3 p = (o - V(grid_origin).xyz) * inv_edge + make_float3(1.0f, 1.0f, 1.0f);
+    float3 dn = d * inv_edge;
+    float dlen = length(dn);
+    float3 dd = dn / dlen;
+    float voxel_t = 1.0f / (res * dlen);  // one voxel edge, in world t
+    // Components too small for the reciprocal become +-2^-23 (LK10: keeps t finite).
+    float eps = 1.1920929e-7f;
+    if (fabs(dd.x) < eps) dd.x = (as_uint(dd.x) & 0x80000000u) != 0u ? -eps : eps;
+    if (fabs(dd.y) < eps) dd.y = (as_uint(dd.y) & 0x80000000u) != 0u ? -eps : eps;
+    if (fabs(dd.z) < eps) dd.z = (as_uint(dd.z) & 0x80000000u) != 0u ? -eps : eps;
+    // t of the plane x = X is X * tx_coef - tx_bias (one multiply-add per plane).
+    float tx_coef = 1.0f / -fabs(dd.x);
+    float ty_coef = 1.0f / -fabs(dd.y);
+    float tz_coef = 1.0f / -fabs(dd.z);
+    float tx_bias = tx_coef * p.x;
+    float ty_bias = ty_coef * p.y;
+    float tz_bias = tz_coef * p.z;
+    // Mirror the axes the ray runs up (x -> 3 - x): then it runs down on every axis, and the
+    // real child slot of mirrored slot idx is idx ^ mirror.
+    uint mirror = 0u;
+    if (dd.x > 0.0f) { mirror ^= 1u; tx_bias = 3.0f * tx_coef - tx_bias; }
+    if (dd.y > 0.0f) { mirror ^= 2u; ty_bias = 3.0f * ty_coef - ty_bias; }
+    if (dd.z > 0.0f) { mirror ^= 4u; tz_bias = 3.0f * tz_coef - tz_bias; }
+    float t_min = max(max(2.0f * tx_coef - tx_bias, 2.0f * ty_coef - ty_bias), 2.0f * tz_coef - tz_bias);
+    float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
+    t_min = max(t_min, tmin * dlen);
+    t_max = min(t_max, tmax * dlen);
+    float t_end = t_max / dlen;  // where the ray leaves the cube (or tmax), world units
+    uint iterations = 0u;
+    uint tests = 0u;
+    if (t_min <= t_max) {
+        // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
+        // one per level above the leaves, "sized to depth".
+        uint stack_node[OCT_DEPTH];
+        float stack_tmax[OCT_DEPTH];
+        int leaf_scale = ESVO_SMAX - OCT_DEPTH;
+        float h = t_max;
+        uint parent = 0u;  // descriptor index of the node whose children are walked
+        uint desc = 0u;  // its descriptor; 0 = fetch again
+        uint idx = 0u;  // mirrored slot of the current cell
+        float3 pos = make_float3(1.0f, 1.0f, 1.0f);  // mirrored min corner of the current cell
+        int scale = ESVO_SMAX - 1;
+        float scale_exp2 = 0.5f;  // 2^(scale - ESVO_SMAX): the cell's edge
+        if (1.5f * tx_coef - tx_bias > t_min) { idx ^= 1u; pos.x = 1.5f; }
+        if (1.5f * ty_coef - ty_bias > t_min) { idx ^= 2u; pos.y = 1.5f; }
+        if (1.5f * tz_coef - tz_bias > t_min) { idx ^= 4u; pos.z = 1.5f; }
+        while (scale < ESVO_SMAX) {
+            iterations += 1u;
+            if (desc == 0u) desc = V(esvo_nodes)[parent];
+            float tx_corner = pos.x * tx_coef - tx_bias;
+            float ty_corner = pos.y * ty_coef - ty_bias;
+            float tz_corner = pos.z * tz_coef - tz_bias;
+            float tc_max = min(min(tx_corner, ty_corner), tz_corner);  // the cell's exit
+            uint slot = idx ^ mirror;
+            if (((desc >> slot) & 1u) != 0u && t_min <= t_max) {
+                float tv_max = min(t_max, tc_max);
+                float half_edge = scale_exp2 * 0.5f;
+                float tx_center = half_edge * tx_coef + tx_corner;
+                float ty_center = half_edge * ty_coef + ty_corner;
+                float tz_center = half_edge * tz_coef + tz_corner;
+                if (t_min <= tv_max) {
+                    uint child = (desc >> 8) + oct_rank_in_word(desc & 0xffu, slot);
+                    if (scale == leaf_scale) {
+                        // Leaf: test its candidates; done once the closest hit lies in it.
+                        float t_exit = tc_max / dlen;
+                        LeafResult lr = oct_test_leaf(CTX_ARG wr, child, oct_accept(t_exit, t_end, voxel_t), tmin, best);
+                        best = lr.best;
+                        tests += lr.tests;
+                        if (best.prim >= 0 && best.t <= t_exit) break;
+                    } else {
+                        // PUSH: remember the parent unless the ray leaves it together with
+                        // this child (then no POP can land here).
+                        if (tc_max < h) {
+                            stack_node[scale - leaf_scale - 1] = parent;
+                            stack_tmax[scale - leaf_scale - 1] = t_max;
+                        }
+                        h = tc_max;
+                        parent = child;
+                        idx = 0u;
+                        scale -= 1;
+                        scale_exp2 = half_edge;
+                        if (tx_center > t_min) { idx ^= 1u; pos.x += scale_exp2; }
+                        if (ty_center > t_min) { idx ^= 2u; pos.y += scale_exp2; }
+                        if (tz_center > t_min) { idx ^= 4u; pos.z += scale_exp2; }
+                        t_max = tv_max;
+                        desc = 0u;
+                        continue;
+                    }
+                }
+            }
+            // ADVANCE: step across the exit face(s).
+            uint step_mask = 0u;
+            if (tx_corner <= tc_max) { step_mask ^= 1u; pos.x -= scale_exp2; }
+            if (ty_corner <= tc_max) { step_mask ^= 2u; pos.y -= scale_exp2; }
+            if (tz_corner <= tc_max) { step_mask ^= 4u; pos.z -= scale_exp2; }
+            t_min = tc_max;
+            idx ^= step_mask;
+            if ((idx & step_mask) != 0u) {
+                // POP: the step left the parent. The highest bit in which the stepped
+                // coordinates changed is the scale of the ancestor that still holds the ray.
+                uint differing = 0u;
+                if ((step_mask & 1u) != 0u) differing |= as_uint(pos.x) ^ as_uint(pos.x + scale_exp2);
+                if ((step_mask & 2u) != 0u) differing |= as_uint(pos.y) ^ as_uint(pos.y + scale_exp2);
+                if ((step_mask & 4u) != 0u) differing |= as_uint(pos.z) ^ as_uint(pos.z + scale_exp2);
+                scale = I32(as_uint(F32(differing)) >> 23) - 127;  // floor(log2): exact below 2^24
+                if (scale >= ESVO_SMAX) break;  // left the root
+                scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
+                parent = stack_node[scale - leaf_scale - 1];
+                t_max = stack_tmax[scale - leaf_scale - 1];
+                // Round the position down to the cell of that scale; its bits give the slot.
+                uint shx = as_uint(pos.x) >> U32(scale);
+                uint shy = as_uint(pos.y) >> U32(scale);
+                uint shz = as_uint(pos.z) >> U32(scale);
+                pos.x = as_float(shx << U32(scale));
+                pos.y = as_float(shy << U32(scale));
+                pos.z = as_float(shz << U32(scale));
+                idx = (shx & 1u) | ((shy & 1u) << 1) | ((shz & 1u) << 2);
+                h = 0.0f;
+                desc = 0u;
+            }
+        }
+    }
+#ifdef COUNT_WORK
+    V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
+#endif
+    return best;
+}
+
+INLINE void trace_esvo_kernel(CTX_PARAM uint ray) {
+    float4 o = V(rays)[2u * ray];
+    float4 d = V(rays)[2u * ray + 1u];
+    Hit h = trace_esvo(CTX_ARG o.xyz, d.xyz, o.w, d.w, ray);
+    V(hit_prim)[ray] = h.prim;
+    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+}
+#endif  // esvo traversal

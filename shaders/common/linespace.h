@@ -1,0 +1,221 @@
+// Candidate-list Line Space (thesis 3.3.3, Listing 1; Keul, Mueller, Lemke 2016), written once for
+// every structure whose cells get a Line Space (grid-ls voxels now, svo-ls / esvo-ls leaves later).
+// Needs geometry.h, scene.h and grid.h (to_grid: cells are boxes in grid space).
+//
+// A cell's box is mapped to the unit cube ("cell-local" coordinates). Each of its 6 faces carries
+// an N x N patch grid. Face f = 2 * axis + side (side 0: coordinate 0, side 1: coordinate 1);
+// the patch coordinates (u, v) on a face of axis a are the local coordinates of axes (a+1)%3 and
+// (a+2)%3. A shaft joins a patch on one face with a patch on another face; a shaft and its
+// reverse are one, and a face is never joined with itself (coplanar patches span no volume),
+// which leaves 15 face pairs ("blocks") x N^4 patch pairs = 15 N^4 shafts per cell.
+//
+// Shaft id within a cell (Listing 1): N^4 * block(fs, fe) + N^2 * patch_s + patch_e, where fs is
+// the smaller face of the two. The thesis looks block up in faceToBlockMap; the closed form
+// below enumerates the same 15 pairs (0,1),(0,2),..,(4,5) in order.
+//
+// Storage: shaft s of Line Space c has the candidates
+//   ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. ls_shaft_offsets[c * 15N^4 + s + 1]]
+// (one CSR offset per shaft: the count is the difference to the next offset, which halves the
+// thesis' count + offset pair).
+//
+// Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
+
+#define LS_MAX_PLANES 10  // a hull of two face patches has at most 8 facets (checked for N <= 4)
+#define LS_MAX_POLY 16    // 3 triangle corners + one vertex per clipping plane, with room
+
+// Block of the unordered face pair (a, b), a < b: row a of faceToBlockMap.
+INLINE uint ls_block(int a, int b) {
+    return U32(a * (11 - a) / 2 + (b - a - 1));
+}
+
+// Patch index on a face from its (u, v) in [0, 1]: clamped, so points a rounding error outside
+// the face land on the nearest patch (Listing 1).
+INLINE uint ls_patch(uint n, float2 uv) {
+    int N = I32(n);
+    int ui = max(0, min(I32(floor(uv.x * F32(N))), N - 1));
+    int vi = max(0, min(I32(floor(uv.y * F32(N))), N - 1));
+    return U32(N * vi + ui);
+}
+
+// (u, v) of a cell-local point on a face of the given axis.
+INLINE float2 ls_face_uv(float3 q, int axis) {
+    return make_float2(comp3(q, (axis + 1) % 3), comp3(q, (axis + 2) % 3));
+}
+
+// Listing 1: shaft id within a cell from start/end face and the patch coordinates there.
+INLINE uint ls_shaft_id(uint n, int face_s, float2 uv_s, int face_e, float2 uv_e) {
+    uint ps = ls_patch(n, uv_s);
+    uint pe = ls_patch(n, uv_e);
+    uint n2 = n * n;
+    if (face_s > face_e) return n2 * n2 * ls_block(face_e, face_s) + n2 * pe + ps;
+    return n2 * n2 * ls_block(face_s, face_e) + n2 * ps + pe;
+}
+
+// Corner k (0..3) of patch p on face f, cell-local.
+INLINE float3 ls_patch_corner(uint n, int face, uint p, int k) {
+    int axis = face / 2;
+    float side = F32(face % 2);
+    float u = F32(I32(p % n) + (k & 1)) / F32(n);
+    float v = F32(I32(p / n) + (k >> 1)) / F32(n);
+    if (axis == 0) return make_float3(side, u, v);
+    if (axis == 1) return make_float3(v, side, u);
+    return make_float3(u, v, side);
+}
+
+// Plane (n.xyz, w) of a shaft facet: a point p is outside by dot(n, p) + w (unit n).
+INLINE float ls_plane_dist(float4 pl, float3 p) {
+    return dot(pl.xyz, p) + pl.w;
+}
+
+#ifdef LS_PLANES_KERNEL
+// ---- Shaft volumes --------------------------------------------------------------------------
+// The shaft volume is the convex hull of its two patches (every segment from a point of one patch
+// to a point of the other lies in it, and a ray through both patches runs exactly along such a
+// segment inside the cell). Its facets are found by brute force over the 56 corner triples: a
+// triple spans a facet plane when all 8 corners lie on one side. The planes depend only on N and
+// the shaft, not on the cell, so one small kernel computes them for all cells. Unused slots hold
+// (0, 0, 0, -1): every point is inside them.
+INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
+    uint n = V(ls_n);
+    uint n2 = n * n;
+    uint n4 = n2 * n2;
+    uint block = shaft / n4;
+    uint rest = shaft % n4;
+    int fa = 0;
+    int fb = 1;
+    for (int a = 0; a < 6; ++a)
+        for (int b = a + 1; b < 6; ++b)
+            if (ls_block(a, b) == block) { fa = a; fb = b; }
+    float3 P[8];
+    for (int k = 0; k < 4; ++k) {
+        P[k] = ls_patch_corner(n, fa, rest / n2, k);
+        P[4 + k] = ls_patch_corner(n, fb, rest % n2, k);
+    }
+    float4 planes[LS_MAX_PLANES];
+    int count = 0;
+    for (int i = 0; i < 8; ++i)
+        for (int j = i + 1; j < 8; ++j)
+            for (int k = j + 1; k < 8; ++k) {
+                float3 nrm = cross(P[j] - P[i], P[k] - P[i]);
+                float len = length(nrm);
+                if (len < 1e-6f) continue;  // collinear corners span no plane
+                nrm = nrm / len;
+                float w = -dot(nrm, P[i]);
+                float dmin = INF_F;
+                float dmax = -INF_F;
+                for (int q = 0; q < 8; ++q) {
+                    float d = dot(nrm, P[q]) + w;
+                    dmin = min(dmin, d);
+                    dmax = max(dmax, d);
+                }
+                if (dmax > 1e-5f && dmin < -1e-5f) continue;  // corners on both sides: no facet
+                if (dmax > 1e-5f) { nrm = -nrm; w = -w; }      // orient the normal outwards
+                int dup = 0;
+                for (int q = 0; q < count; ++q) {
+                    float4 o = planes[q];
+                    if (fabs(o.x - nrm.x) + fabs(o.y - nrm.y) + fabs(o.z - nrm.z) + fabs(o.w - w) < 1e-4f) dup = 1;
+                }
+                // More facets than slots cannot happen for these hulls; dropping one would only
+                // enlarge the volume (still conservative).
+                if (dup == 0 && count < LS_MAX_PLANES) {
+                    planes[count] = make_float4(nrm.x, nrm.y, nrm.z, w);
+                    count += 1;
+                }
+            }
+    for (int q = 0; q < LS_MAX_PLANES; ++q)
+        V(ls_planes)[shaft * U32(LS_MAX_PLANES) + U32(q)] =
+            q < count ? planes[q] : make_float4(0.0f, 0.0f, 0.0f, -1.0f);
+}
+#endif  // shaft volumes
+
+#if defined(HAS_ls_cell_ranges) && defined(HAS_ls_planes)
+// ---- Triangle / shaft test ------------------------------------------------------------------
+// Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
+// rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
+// Cheap outcomes first: all corners outside one plane -> no; all corners inside every plane ->
+// yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3) and see
+// whether anything is left.
+INLINE int ls_tri_meets_shaft(CTX_PARAM uint shaft, float3 a, float3 b, float3 c) {
+    float eps = V(ls_eps);
+    float4 pl[LS_MAX_PLANES];
+    int all_inside = 1;
+    for (int q = 0; q < LS_MAX_PLANES; ++q) {
+        pl[q] = V(ls_planes)[shaft * U32(LS_MAX_PLANES) + U32(q)];
+        float da = ls_plane_dist(pl[q], a) - eps;
+        float db = ls_plane_dist(pl[q], b) - eps;
+        float dc = ls_plane_dist(pl[q], c) - eps;
+        if (da > 0.0f && db > 0.0f && dc > 0.0f) return 0;
+        if (da > 0.0f || db > 0.0f || dc > 0.0f) all_inside = 0;
+    }
+    if (all_inside != 0) return 1;
+    float3 poly[LS_MAX_POLY];
+    float3 next[LS_MAX_POLY];
+    poly[0] = a;
+    poly[1] = b;
+    poly[2] = c;
+    int n = 3;
+    for (int q = 0; q < LS_MAX_PLANES; ++q) {
+        int m = 0;
+        for (int i = 0; i < n; ++i) {
+            float3 cur = poly[i];
+            float3 nxt = poly[(i + 1) % n];
+            float dc = ls_plane_dist(pl[q], cur) - eps;
+            float dn = ls_plane_dist(pl[q], nxt) - eps;
+            if (dc <= 0.0f && m < LS_MAX_POLY) { next[m] = cur; m += 1; }
+            if ((dc <= 0.0f) != (dn <= 0.0f) && m < LS_MAX_POLY) {
+                next[m] = cur + (nxt - cur) * (dc / (dc - dn));
+                m += 1;
+            }
+        }
+        if (m == 0) return 0;
+        for (int i = 0; i < m; ++i) poly[i] = next[i];
+        n = m;
+    }
+    return 1;
+}
+
+// ---- Build: count pass (LS_FILL undefined) and fill pass, one work item per (cell, shaft) ----
+// Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
+// cell into ls_cell_tris). A work item walks its cell's candidates in list order, so the fill
+// writes each shaft's range sequentially: no atomics, deterministic order.
+INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
+    uint shafts = V(ls_shafts);
+    uint cell = gid / shafts;
+    uint shaft = gid % shafts;
+    float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
+    float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
+    float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
+    uint begin = V(ls_cell_ranges)[2u * cell];
+    uint end = V(ls_cell_ranges)[2u * cell + 1u];
+#ifdef LS_FILL
+    uint first = V(ls_shaft_offsets)[gid];
+#endif
+    uint count = 0u;
+    for (uint i = begin; i < end; ++i) {
+        uint tri = V(ls_cell_tris)[i];
+        Triangle t = load_triangle(CTX_ARG tri);
+        float3 a = (to_grid(CTX_ARG t.a) - lo) * inv;
+        float3 b = (to_grid(CTX_ARG t.b) - lo) * inv;
+        float3 c = (to_grid(CTX_ARG t.c) - lo) * inv;
+        if (ls_tri_meets_shaft(CTX_ARG shaft, a, b, c) != 0) {
+#ifdef LS_FILL
+            V(ls_shaft_tris)[first + count] = tri;
+#endif
+            count += 1u;
+        }
+    }
+#ifndef LS_FILL
+    V(ls_shaft_counts)[gid] = count;
+    if (count > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
+#endif
+}
+#endif  // triangle / shaft test and build
+
+#ifdef HAS_ls_check_offsets
+// ---- 32-bit overflow check of the shaft offsets ---------------------------------------------
+// Each shaft adds fewer than 2^32 candidates, so a total past 2^32 wraps the 32-bit prefix sum
+// and shows as a decrease somewhere; flag it instead of building a truncated list (thesis 6.3).
+INLINE void ls_check_kernel(CTX_PARAM uint gid) {
+    if (V(ls_check_offsets)[gid + 1u] < V(ls_check_offsets)[gid]) ATOMIC_ADD(V(ls_check_flag)[0], 1u);
+}
+#endif

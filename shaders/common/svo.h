@@ -1,0 +1,295 @@
+// Sparse voxel octrees over the voxel lists of grid.h: the build both octrees share and the
+// node-pool traversal of `svo` (thesis 3.3.2, Algorithm 1). Needs geometry.h and scene.h;
+// esvo.h adds the Laine & Karras layout and traversal on top of this file.
+//
+// The octree covers the bounding cube, resolution R = 2^L (L = OCT_DEPTH levels below the
+// root). Level l has 8^l cells; cell c of level l is the Morton code of its coordinates
+// (bit 3i = x, 3i+1 = y, 3i+2 = z), so its 8 children are cells 8c..8c+7 of level l+1 and
+// the child slot is x + 2y + 4z, as in Algorithm 1 line 12.
+//
+// Build (all on the device, see backends/structures/svo.py):
+//   oct_bits   one bit per cell and level (a bit pyramid, levels one after another, each level
+//              starting on a word boundary: level_words[l] is its first word). Leaf level:
+//              "voxel non-empty"; level l: "some child flagged" (the thesis' flagging step).
+//   oct_ranks  exclusive prefix sum of the words' popcounts. The rank of a flagged bit in the
+//              whole pyramid is its node id: levels 0..L-1 give the internal nodes in level
+//              order (root = 0), level L gives leaf index + oct_ranks[level_words[L]].
+//              Ranks are what Listing 2 computes serially (accumOffset), in parallel.
+//   svo_nodes  8 uints per internal node: child node id, or on the last internal level leaf
+//              index + 1; 0 = empty (the root is never anyone's child).
+//   leaves     2 uints per leaf: (first, count) of its candidates in voxel_tris (the thesis'
+//              candidate helper buffer), so the dense voxel_offsets can be dropped.
+
+#ifndef OCT_DEPTH
+#define OCT_DEPTH 10
+#endif
+
+#ifdef LANG_GLSL
+#define OCT_POPCOUNT(x) U32(bitCount(x))
+#else
+#define OCT_POPCOUNT(x) popcount(x)
+#endif
+
+// Morton code -> coordinate: every third bit (x = compact3(m), y = compact3(m >> 1), ...).
+INLINE uint oct_compact3(uint x) {
+    x &= 0x09249249u;
+    x = (x ^ (x >> 2)) & 0x030c30c3u;
+    x = (x ^ (x >> 4)) & 0x0300f00fu;
+    x = (x ^ (x >> 8)) & 0xff0000ffu;
+    x = (x ^ (x >> 16)) & 0x000003ffu;
+    return x;
+}
+
+// Number of bits below `bit` that are set in `word`.
+INLINE uint oct_rank_in_word(uint word, uint bit) {
+    return bit == 0u ? 0u : OCT_POPCOUNT(word & ((1u << bit) - 1u));
+}
+
+#if defined(HAS_oct_bits) && defined(HAS_voxel_offsets) && !defined(HAS_leaves)
+// ---- Build 1: flag the leaf level, one work item per word (32 cells, no atomics) ----------
+INLINE void oct_flag_leaves_kernel(CTX_PARAM uint gid) {
+    uint depth = V(oct_depth);
+    uint cells = 1u << (3u * depth);
+    uint r = U32(V(grid_res).x);
+    uint bits = 0u;
+    for (uint b = 0u; b < 32u; ++b) {
+        uint m = 32u * gid + b;
+        if (m >= cells) break;
+        uint v = oct_compact3(m) + r * (oct_compact3(m >> 1) + r * oct_compact3(m >> 2));
+        if (V(voxel_offsets)[v + 1u] > V(voxel_offsets)[v]) bits |= 1u << b;
+    }
+    V(oct_bits)[V(level_words)[depth] + gid] = bits;
+}
+#endif
+
+#if defined(HAS_oct_bits) && !defined(HAS_voxel_offsets) && !defined(HAS_oct_ranks) && !defined(HAS_oct_counts)
+// ---- Build 2: flag level oct_level from the level below (a cell is needed if a child is) ---
+INLINE void oct_flag_up_kernel(CTX_PARAM uint gid) {
+    uint l = V(oct_level);
+    uint cells = 1u << (3u * l);
+    uint below = V(level_words)[l + 1u];
+    uint bits = 0u;
+    for (uint b = 0u; b < 32u; ++b) {
+        uint c = 32u * gid + b;
+        if (c >= cells) break;
+        uint w = V(oct_bits)[below + ((8u * c) >> 5)];
+        if (((w >> ((8u * c) & 31u)) & 0xffu) != 0u) bits |= 1u << b;
+    }
+    V(oct_bits)[V(level_words)[l] + gid] = bits;
+}
+#endif
+
+#ifdef HAS_oct_counts
+// ---- Build 3: popcount per word, scanned on the host side of the Device interface ---------
+INLINE void oct_popcount_kernel(CTX_PARAM uint gid) {
+    V(oct_counts)[gid] = OCT_POPCOUNT(V(oct_bits)[gid]);
+}
+#endif
+
+#ifdef HAS_oct_level_counts
+// ---- Build 4: the rank at each level's first word = nodes above that level ----------------
+INLINE void oct_level_counts_kernel(CTX_PARAM uint gid) {
+    V(oct_level_counts)[gid] = V(oct_ranks)[V(level_words)[gid]];
+}
+#endif
+
+#if defined(HAS_oct_ranks) && (defined(HAS_svo_nodes) || defined(HAS_esvo_nodes)) && !defined(HAS_rays)
+// ---- Build 5: create the internal nodes, one work item per word of levels 0..L-1 ----------
+// Every flagged cell becomes the node with its rank; its children are the flagged bits of the
+// byte 8c..8c+7 one level down, and the rank of that byte's first bit is the first child's id,
+// so the children of a node are contiguous and in slot order (the esvo layout needs exactly
+// that: child k lives at first + popcount(mask below k)).
+INLINE void oct_create_kernel(CTX_PARAM uint gid) {
+    uint depth = V(oct_depth);
+    uint l = 0u;
+    while (V(level_words)[l + 1u] <= gid) l += 1u;
+    uint word = V(oct_bits)[gid];
+    if (word == 0u) return;
+    uint node = V(oct_ranks)[gid];
+    uint first_cell = 32u * (gid - V(level_words)[l]);
+    uint below = V(level_words)[l + 1u];
+    uint leaf_base = V(oct_ranks)[V(level_words)[depth]];
+    for (uint b = 0u; b < 32u; ++b) {
+        if (((word >> b) & 1u) == 0u) continue;
+        uint c = first_cell + b;
+        uint cw = below + ((8u * c) >> 5);
+        uint shift = (8u * c) & 31u;
+        uint cword = V(oct_bits)[cw];
+        uint mask = (cword >> shift) & 0xffu;
+        uint first = V(oct_ranks)[cw] + oct_rank_in_word(cword, shift);
+        if (l + 1u == depth) first -= leaf_base;  // children are leaves: index into `leaves`
+#ifdef HAS_esvo_nodes
+        // Listing 2: 24-bit child pointer above the 8-bit valid mask (the build checks that
+        // every pointer fits in 24 bits before it gets here).
+        V(esvo_nodes)[node] = (first << 8) | mask;
+#endif
+#ifdef HAS_svo_nodes
+        uint leafbias = l + 1u == depth ? 1u : 0u;  // leaf index + 1, so 0 stays "empty"
+        for (uint k = 0u; k < 8u; ++k) {
+            uint child = ((mask >> k) & 1u) != 0u ? first + oct_rank_in_word(mask, k) + leafbias : 0u;
+            V(svo_nodes)[8u * node + k] = child;
+        }
+#endif
+        node += 1u;
+    }
+}
+#endif
+
+#if defined(HAS_leaves) && defined(HAS_voxel_offsets)
+// ---- Build 6: link every leaf to its candidate list, one work item per leaf-level word ----
+INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
+    uint depth = V(oct_depth);
+    uint w = V(level_words)[depth] + gid;
+    uint word = V(oct_bits)[w];
+    if (word == 0u) return;
+    uint leaf = V(oct_ranks)[w] - V(oct_ranks)[V(level_words)[depth]];
+    uint r = U32(V(grid_res).x);
+    for (uint b = 0u; b < 32u; ++b) {
+        if (((word >> b) & 1u) == 0u) continue;
+        uint m = 32u * gid + b;
+        uint v = oct_compact3(m) + r * (oct_compact3(m >> 1) + r * oct_compact3(m >> 2));
+        uint begin = V(voxel_offsets)[v];
+        V(leaves)[2u * leaf] = begin;
+        V(leaves)[2u * leaf + 1u] = V(voxel_offsets)[v + 1u] - begin;
+        leaf += 1u;
+    }
+}
+#endif
+
+#if defined(HAS_rays) && defined(HAS_leaves)
+// ---- Leaf handling shared by both traversals ---------------------------------------------
+// Candidates of a leaf are tested against the original ray (the watertight test of
+// geometry.h, so t is the world distance). A hit counts up to the leaf's exit plus a margin
+// (t_accept): the walk still ends only once the closest hit lies before the current leaf's
+// exit, so the margin never lets a farther hit win; it only keeps a hit that float rounding
+// of the exit distance would push just outside the leaf (it is found in this leaf, and a
+// triangle may not reach into the next one).
+STRUCT(LeafResult) { Hit best; uint tests; };
+
+INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, uint leaf, float t_accept, float tmin, Hit best) {
+    LeafResult res;
+    uint begin = V(leaves)[2u * leaf];
+    uint end = begin + V(leaves)[2u * leaf + 1u];
+    for (uint i = begin; i < end; ++i) {
+        uint tri = V(voxel_tris)[i];
+        Triangle T = load_triangle(CTX_ARG tri);
+        float t = ray_triangle_wt(wr, T.a, T.b, T.c);
+        if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
+    }
+    res.best = best;
+    res.tests = end - begin;
+    return res;
+}
+
+// Accept bound of a leaf in world units: its exit, a relative 1e-5 and 1/100 of a voxel
+// (voxel_t = one voxel edge in t), never past the end of the ray's span (t_end).
+INLINE float oct_accept(float t_exit, float t_end, float voxel_t) {
+    return min(t_exit + 1e-5f * fabs(t_exit) + 0.01f * voxel_t, t_end + 1e-5f * fabs(t_end));
+}
+#endif
+
+#if defined(HAS_rays) && defined(HAS_svo_nodes)
+// ---- svo traversal (thesis Algorithm 1) ---------------------------------------------------
+// Grid space as in grid.h (voxel = unit cube, t unchanged). The stack holds node ids only
+// (stack[l] = node whose children are being walked at depth l+1), the current cell is kept
+// as integer coordinates at its depth. A child is entered where the ray enters it (the
+// child whose octant contains the entry point: "intersect middle planes"); after a cell the
+// ray steps to the neighbour across its exit face (front to back from the direction signs),
+// and goes up while that neighbour lies outside the parent (lines 23-31: the parent is left
+// through the same face, so the step repeats one level up). Ends at the first hit that lies
+// inside the current leaf, or when the ray leaves the root.
+INLINE float3 svo_to_grid(CTX_PARAM float3 p) {
+    return (p - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
+}
+
+INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+    Hit best = no_hit(tmax);
+    WRay wr = make_wray(o, d);
+    float3 og = svo_to_grid(CTX_ARG o);
+    float3 dg = d * V(grid_inv_voxel).xyz;
+    float3 inv = make_float3(safe_rcp(dg.x), safe_rcp(dg.y), safe_rcp(dg.z));
+    int res = V(grid_res).x;
+    float fres = F32(res);
+    float2 span = ray_box(og, inv, dg, make_float3(0.0f, 0.0f, 0.0f), make_float3(fres, fres, fres));
+    float t0 = max(span.x, tmin);
+    float t1 = min(span.y, tmax);
+    float voxel_t = 1.0f / max(fabs(dg.x), max(fabs(dg.y), fabs(dg.z)));  // >= shortest voxel crossing
+    uint iterations = 0u;
+    uint tests = 0u;
+    if (t0 <= t1) {
+        uint stack[OCT_DEPTH];
+        stack[0] = 0u;  // the root
+        int level = 1;  // depth of `cell`
+        int size = res >> 1;  // edge of a cell at this depth, in voxels
+        int sx = dg.x > 0.0f ? 1 : -1, sy = dg.y > 0.0f ? 1 : -1, sz = dg.z > 0.0f ? 1 : -1;
+        float3 p = og + dg * t0;
+        float fs0 = F32(size);
+        int3 cell = clamp(make_int3(I32(floor(p.x / fs0)), I32(floor(p.y / fs0)), I32(floor(p.z / fs0))),
+                          make_int3(0, 0, 0), make_int3(1, 1, 1));
+        for (;;) {
+            iterations += 1u;
+            float fs = F32(size);
+            // Exit distance of the cell on each axis (an axis the ray does not move along never wins).
+            float nx = dg.x == 0.0f ? INF_F : (F32(cell.x + (sx > 0 ? 1 : 0)) * fs - og.x) * inv.x;
+            float ny = dg.y == 0.0f ? INF_F : (F32(cell.y + (sy > 0 ? 1 : 0)) * fs - og.y) * inv.y;
+            float nz = dg.z == 0.0f ? INF_F : (F32(cell.z + (sz > 0 ? 1 : 0)) * fs - og.z) * inv.z;
+            float t_exit = min(nx, min(ny, nz));
+            uint slot = U32(cell.x & 1) | (U32(cell.y & 1) << 1) | (U32(cell.z & 1) << 2);
+            uint child = V(svo_nodes)[8u * stack[level - 1] + slot];
+            if (child != 0u) {
+                if (level == OCT_DEPTH) {
+                    LeafResult lr = oct_test_leaf(CTX_ARG wr, child - 1u, oct_accept(t_exit, t1, voxel_t), tmin, best);
+                    best = lr.best;
+                    tests += lr.tests;
+                    if (best.prim >= 0 && best.t <= t_exit) break;
+                } else {
+                    // Descend (lines 11-18): enter the child octant that holds the entry point.
+                    float ex = dg.x == 0.0f ? -INF_F : (F32(cell.x + (sx > 0 ? 0 : 1)) * fs - og.x) * inv.x;
+                    float ey = dg.y == 0.0f ? -INF_F : (F32(cell.y + (sy > 0 ? 0 : 1)) * fs - og.y) * inv.y;
+                    float ez = dg.z == 0.0f ? -INF_F : (F32(cell.z + (sz > 0 ? 0 : 1)) * fs - og.z) * inv.z;
+                    float t_in = max(t0, max(ex, max(ey, ez)));
+                    stack[level] = child;
+                    level += 1;
+                    size >>= 1;
+                    float hs = F32(size);
+                    float3 q = og + dg * t_in;
+                    int3 base = make_int3(2 * cell.x, 2 * cell.y, 2 * cell.z);
+                    int3 sub = make_int3(I32(floor(q.x / hs)), I32(floor(q.y / hs)), I32(floor(q.z / hs))) - base;
+                    cell = base + clamp(sub, make_int3(0, 0, 0), make_int3(1, 1, 1));
+                    continue;
+                }
+            }
+            if (t_exit >= t1) break;
+            // Advance to the neighbour across the exit face; go up while it is outside the parent.
+            int axis = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
+            int left_root = 0;
+            for (;;) {
+                int c = axis == 0 ? cell.x : (axis == 1 ? cell.y : cell.z);
+                int s = axis == 0 ? sx : (axis == 1 ? sy : sz);
+                int nc = c + s;
+                if ((nc >> 1) == (c >> 1)) {
+                    if (axis == 0) cell.x = nc; else if (axis == 1) cell.y = nc; else cell.z = nc;
+                    break;
+                }
+                level -= 1;
+                if (level == 0) { left_root = 1; break; }
+                cell = make_int3(cell.x >> 1, cell.y >> 1, cell.z >> 1);
+                size <<= 1;
+            }
+            if (left_root != 0) break;
+        }
+    }
+#ifdef COUNT_WORK
+    V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
+#endif
+    return best;
+}
+
+INLINE void trace_svo_kernel(CTX_PARAM uint ray) {
+    float4 o = V(rays)[2u * ray];
+    float4 d = V(rays)[2u * ray + 1u];
+    Hit h = trace_svo(CTX_ARG o.xyz, d.xyz, o.w, d.w, ray);
+    V(hit_prim)[ray] = h.prim;
+    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+}
+#endif  // svo traversal

@@ -1,0 +1,111 @@
+"""`grid` on both backends: voxel lists equal the numpy reference; hits agree with Embree."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import backends
+from backends import BuildParams
+from backends.structures.base import BOX_EPS
+from harness import reference
+from harness.groundtruth import embree_closest
+from harness.rays import primary_rays
+from harness.scene import Camera
+from harness.scenes import load_scene
+from harness.verify import compare
+
+from conftest import scene_path
+
+# Sponza (Crytek, cm): an interior view down the atrium like the thesis' images.
+SPONZA_CAMERA = Camera(eye=(1100.0, 180.0, -40.0), target=(-900.0, 420.0, 40.0), up=(0, 1, 0), fov_deg=65.0)
+
+
+def voxel_lists(built):
+    d = built.device
+    return (d.read(built.buffers["voxel_offsets"], np.uint32).astype(np.int64),
+            d.read(built.buffers["voxel_tris"], np.uint32))
+
+
+@pytest.mark.parametrize("scene_name,resolution", [
+    ("cornell", (16, 16, 16)), ("spheres", (24, 24, 24)), ("atrium", (32, 16, 24)), ("teapot", (40, 20, 28)),
+])
+def test_voxel_lists_equal_reference(device, scene_name, resolution):
+    scene = load_scene(scene_path("teapot.ply") if scene_name == "teapot" else scene_name)
+    built = backends.build(device, "grid", scene, BuildParams(resolution=resolution))
+    offsets, tris = voxel_lists(built)
+    g = built.geometry
+    # The reference runs in float64; the device in float32. They may differ only on pairs whose
+    # overlap is decided within float rounding of the eps-expanded box.
+    missing, extra = reference.compare_to_reference(
+        offsets, tris, scene.vertices, scene.faces, g.origin, g.voxel_size, g.resolution,
+        eps=BOX_EPS, delta=reference.suggested_delta(g.resolution))
+    assert len(missing) == 0, f"{len(missing)} voxel/triangle pairs outside the borderline band are missing"
+    assert len(extra) == 0, f"{len(extra)} pairs outside the borderline band are extra"
+    assert built.stats["references"] == len(tris)
+    built.release()
+
+
+def _agreement(device, scene, structure, resolution, rays, **params):
+    built = backends.build(device, structure, scene, BuildParams(resolution=resolution, **params))
+    hits = backends.trace(built, rays)
+    built.release()
+    ref_p, ref_t = embree_closest(scene, rays)
+    lo, hi = scene.bounds
+    return compare(hits.prim_ids, hits.distances, ref_p, ref_t, scene_extent=float(np.linalg.norm(hi - lo))), hits
+
+
+@pytest.mark.parametrize("resolution", [(64, 64, 64), (48, 24, 40)])
+def test_atrium_agrees_with_embree(device, resolution):
+    scene = load_scene("atrium")
+    rays = primary_rays(scene, 160, 120)
+    acc, _ = _agreement(device, scene, "grid", resolution, rays)
+    assert acc.agreement >= 0.9999, acc.to_dict()
+    assert acc.missed + acc.extra + acc.wrong <= 1
+
+
+def test_sponza_256_agrees_with_embree(device):
+    scene = load_scene(scene_path("sponza.ply"))
+    rays = primary_rays(scene, 256, 256, SPONZA_CAMERA)
+    acc, hits = _agreement(device, scene, "grid", (64, 64, 64), rays)
+    assert (hits.prim_ids >= 0).mean() > 0.9  # an interior view: nearly every ray hits
+    assert acc.agreement >= 0.9999, acc.to_dict()
+
+
+def test_spheres_and_cornell_exact(device):
+    for name in ("spheres", "cornell"):
+        scene = load_scene(name)
+        acc, _ = _agreement(device, scene, "grid", (32, 32, 32), primary_rays(scene, 96, 96))
+        assert acc.agreement == 1.0, (name, acc.to_dict())
+
+
+def test_backends_give_identical_hits():
+    scene = load_scene("atrium")
+    rays = primary_rays(scene, 96, 96)
+    out = []
+    for name in backends.BACKENDS:
+        built = backends.build(backends.get_device(name), "grid", scene, BuildParams(resolution=(32, 32, 32)))
+        out.append(backends.trace(built, rays))
+        built.release()
+    same = out[0].prim_ids == out[1].prim_ids
+    assert same.mean() >= 0.9999
+    np.testing.assert_allclose(out[0].distances[same], out[1].distances[same], rtol=1e-5)
+
+
+def test_work_counters_count_voxels_and_tests(device):
+    """A ray through k empty voxels to one triangle: k+1 iterations, 1 candidate test."""
+    from harness.rays import RaySet
+    from harness.scene import Scene
+
+    # One triangle filling the x = 7.5 slab of an 8x1x1 grid over [0, 8] x [0, 1] x [0, 1].
+    v = np.array([[7.5, -1, -1], [7.5, 3, -1], [7.5, -1, 3], [0, 0, 0], [8, 1, 1]], np.float32)
+    f = np.array([[0, 1, 2], [3, 3, 3], [4, 4, 4]], np.uint32)  # two points pin the bounds
+    scene = Scene("line", v, f, "test")
+    built = backends.build(device, "grid", scene, BuildParams(resolution=(8, 1, 1)))
+    rays = RaySet("one", np.array([[-1, 0.5, 0.5]], np.float32), np.array([[1, 0, 0]], np.float32))
+    hits = backends.trace(built, rays, work=True)
+    built.release()
+    assert hits.prim_ids[0] == 0
+    assert hits.distances[0] == pytest.approx(8.5, rel=1e-5)
+    iterations, tests = hits.work[0, 0], hits.work[0, 1]
+    assert iterations == 8  # voxels 0..6 empty (7) + voxel 7 with the triangle
+    assert tests >= 1 and tests <= 3  # the triangle, and the point-triangles of voxels 0 and 7
