@@ -133,16 +133,31 @@ def _parse_size(text: str) -> tuple[int, int]:
         raise UsageError(f"--size must look like 512x512, got {text!r}") from None
 
 
+def _parse_camera(text: str):
+    """"ex,ey,ez:tx,ty,tz[:fov]" -> ((eye), (target), (up), fov)."""
+    try:
+        parts = text.split(":")
+        eye = tuple(float(v) for v in parts[0].split(","))
+        target = tuple(float(v) for v in parts[1].split(","))
+        fov = float(parts[2]) if len(parts) > 2 else 60.0
+        if len(eye) != 3 or len(target) != 3:
+            raise ValueError
+    except (ValueError, IndexError):
+        raise UsageError(f"--camera must look like 'ex,ey,ez:tx,ty,tz[:fov]', got {text!r}") from None
+    return (eye, target, (0.0, 1.0, 0.0), fov)
+
+
 def cmd_trace(args) -> int:
     from .execute import execute
     from .rays import make_rays
     from .scenes import load_scene
 
     width, height = _parse_size(args.size)
+    camera = _parse_camera(args.camera) if args.camera else None
     scene = load_scene(args.scene)  # bad input fails here, before anything looks like a result
-    rays = make_rays(args.rays, scene, width, height)
     case = Case(args.scene, args.structure, args.backend, str(args.resolution), args.ls_n,
-                args.ls_min_candidates, args.rays, width, height)
+                args.ls_min_candidates, args.rays, width, height, camera)
+    rays = make_rays(args.rays, scene, width, height, case.camera_object())
     settings = RunSettings(width=width, height=height, rays=args.rays, repeats=args.repeats,
                            warmup=args.warmup, rel_tol=args.rel_tol)
     rec = execute(case, settings, record_env(), dump_hits=args.dump_hits, heatmap_dir=args.heatmaps,
@@ -179,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--ls-n", type=int, default=0, help="Line Space patches per face edge")
     t.add_argument("--ls-min-candidates", type=int, default=0)
     t.add_argument("--size", default="256x256", help="image size WxH for camera rays")
+    t.add_argument("--camera", help="eye and target 'ex,ey,ez:tx,ty,tz[:fov]' (default: the scene's)")
     t.add_argument("--rays", default="primary", help="ray set name or .npz file with origins/directions")
     t.add_argument("--repeats", type=int, default=5)
     t.add_argument("--warmup", type=int, default=1)

@@ -55,12 +55,19 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     if scene is None:
         scene = load_scene(case.scene)
     if rays is None:
-        rays = make_rays(case.rays, scene, case.width, case.height)
+        rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object())
     rec = case_fields(case)
     rec.update({"scene": scene.name, "scene_source": scene.source, "scene_hash": scene.content_hash,
                 "triangles": scene.triangle_count, "ray_count": rays.count, "rays_hash": rays.content_hash})
     rec.update(env or {})
     ref_prim, ref_t = embree_closest(scene, rays)
+    if settings.embree_timing:
+        from .groundtruth import embree_trace_seconds
+
+        emb = embree_trace_seconds(scene, rays, repeats=3)
+        med = statistics.median(emb)
+        rec.update({"embree_trace_seconds": med,
+                    "embree_rays_per_second": rays.count / med if med > 0 else None})
     built = None
     try:
         device = backends.get_device(case.backend)

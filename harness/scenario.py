@@ -13,6 +13,7 @@
     min_agreement = 0.9999   # the gate's threshold per case
     timeout_seconds = 600    # per case, in its worker process
     heatmaps = false         # write per-case heatmaps (profiling kernels)
+    embree_timing = true     # record Embree's rays/s on the same rays (the CPU reference)
     [[cases]]                # each block is a cross product
     scenes = ["atrium", "$SCENES/sponza.ply"]
     structures = ["grid"]
@@ -20,6 +21,8 @@
     resolutions = [64, "64x32x16"]
     ls_n = [0]               # Line Space N (0 = none)
     ls_min_candidates = 0
+    camera = { eye = [1100, 180, -40], target = [-900, 420, 40], up = [0, 1, 0], fov = 65 }
+                             # optional; default: the scene's own camera or one from its bounds
 
 `$SCENES` is the real-scene folder: env LSBENCH_SCENES, else ../shared/scenes beside the repo.
 """
@@ -60,6 +63,7 @@ class RunSettings:
     timeout_seconds: float = 600.0
     heatmaps: bool = False
     memory_budget_mb: float | None = None
+    embree_timing: bool = True  # also time Embree (CPU, all cores) on the same rays
 
 
 @dataclass(frozen=True)
@@ -73,13 +77,26 @@ class Case:
     rays: str = "primary"
     width: int = 64
     height: int = 64
+    camera: tuple | None = None  # ((eye), (target), (up), fov_deg) or None for the scene default
 
     @property
     def key(self) -> str:
         """Stable identity of a case across runs and commits (what resume and compare match on)."""
         scene = Path(self.scene).name if ("/" in self.scene or "\\" in self.scene) else self.scene
-        return (f"{scene}|{self.rays}@{self.width}x{self.height}|{self.structure}|{self.backend}|"
+        rays = f"{self.rays}@{self.width}x{self.height}"
+        if self.camera is not None:
+            eye, target, up, fov = self.camera
+            rays += "@cam(" + ",".join(f"{v:g}" for v in (*eye, *target, *up, fov)) + ")"
+        return (f"{scene}|{rays}|{self.structure}|{self.backend}|"
                 f"r{self.resolution}|n{self.ls_n}|k{self.ls_min_candidates}")
+
+    def camera_object(self):
+        from .scene import Camera
+
+        if self.camera is None:
+            return None
+        eye, target, up, fov = self.camera
+        return Camera(eye=tuple(eye), target=tuple(target), up=tuple(up), fov_deg=float(fov))
 
 
 @dataclass
@@ -94,6 +111,21 @@ def _as_list(value, what: str) -> list:
     if value is None:
         return []
     return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def _camera(table, where: str):
+    if table is None:
+        return None
+    try:
+        eye = tuple(float(v) for v in table["eye"])
+        target = tuple(float(v) for v in table["target"])
+        up = tuple(float(v) for v in table.get("up", (0.0, 1.0, 0.0)))
+        fov = float(table.get("fov", 60.0))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ScenarioError(f"{where}: camera needs eye = [x,y,z], target = [x,y,z] (optional up, fov): {exc}") from None
+    if len(eye) != 3 or len(target) != 3 or len(up) != 3:
+        raise ScenarioError(f"{where}: camera eye/target/up need 3 numbers each")
+    return (eye, target, up, fov)
 
 
 def load_scenario(path: str, gpu: bool = False) -> Scenario:
@@ -131,6 +163,7 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
         resolutions = _as_list(block.get("resolutions"), "resolutions")
         ns = [int(n) for n in _as_list(block.get("ls_n", [2]), "ls_n")]  # N for Line Space structures
         kmin = int(block.get("ls_min_candidates", 0))
+        camera = _camera(block.get("camera"), where)
         if not scenes or not names or not resolutions:
             raise ScenarioError(f"{where}: needs scenes, structures and resolutions")
         for s in names:
@@ -146,7 +179,7 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
                         # A Line Space N only means something for Line Space structures.
                         for n in (ns if s.endswith("-ls") else [0]):
                             cases.append(Case(scene, s, b, str(r), n, kmin if s.endswith("-ls") else 0,
-                                              settings.rays, width, height))
+                                              settings.rays, width, height, camera))
     seen, unique = set(), []
     for c in cases:
         if c.key not in seen:

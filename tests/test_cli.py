@@ -128,3 +128,14 @@ def test_bad_scenario_is_one_line_error(tmp_path):
     proc = lsbench("run", scen, "--out", tmp_path / "x")
     assert proc.returncode == 2 and "unknown structure" in proc.stderr
     assert not (tmp_path / "x" / "results.jsonl").exists()
+
+
+def test_ci_gate_scenario_passes():
+    """The CI gate itself: every case of scenarios/ci.toml at its tolerance, on both backends."""
+    from conftest import scene_path
+
+    scene_path("sponza.ply")
+    proc = lsbench("gate", "scenarios/ci.toml", "--out", Path(os.environ.get("TMPDIR", "/tmp")) / f"ci-gate-{os.getpid()}",
+                   "--fresh")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    assert "gate passed" in proc.stdout
