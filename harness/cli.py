@@ -17,14 +17,10 @@ class UsageError(ValueError):
 
 
 def git_state(repo: Path = REPO_ROOT) -> tuple[str, bool]:
-    try:
-        commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True,
-                                text=True, check=True).stdout.strip()
-        dirty = bool(subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
-                                    capture_output=True, text=True, check=True).stdout.strip())
-        return commit, dirty
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown", False
+    from .store import git_state as _git_state
+
+    commit, dirty = _git_state(repo)
+    return (commit or "unknown"), bool(dirty)
 
 
 def record_env() -> dict:
@@ -55,24 +51,22 @@ def default_out_dir(name: str) -> Path:
 
 
 def _write_run_json(out: Path, scenario, argv) -> None:
-    from importlib import metadata
+    import backends
 
-    versions = {}
-    for pkg in ("numpy", "trimesh", "embreex", "moderngl", "pyopencl"):
-        try:
-            versions[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            versions[pkg] = None
+    from .store import environment_info, write_run_info
+
     commit, dirty = git_state()
-    info = {"commit": commit, "dirty": dirty, "date": _dt.datetime.now().isoformat(timespec="seconds"),
-            "host": platform.node(), "machine": platform.platform(), "python": platform.python_version(),
-            "packages": versions, "scenario": scenario.path, "scenario_name": scenario.name,
-            "command": " ".join(argv)}
-    try:
-        from .store import write_run_info
-        write_run_info(out, info)
-    except ImportError:
-        (out / "run.json").write_text(json.dumps(info, indent=2))
+    info = environment_info()
+    devices = {}
+    for name in sorted({c.backend for c in scenario.cases}):
+        try:
+            d = backends.get_device(name).info()
+            devices[name] = {"device": d["device"], "driver": d["driver"]}
+        except Exception as exc:  # the cases will fail with the reason; run.json says it too
+            devices[name] = {"device": None, "error": str(exc).splitlines()[0]}
+    info.update({"commit": commit, "dirty": dirty, "devices": devices, "scenario": scenario.path,
+                 "scenario_name": scenario.name, "command": " ".join(argv)})
+    write_run_info(out, info)
 
 
 def cmd_run(args) -> int:
@@ -204,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--heatmaps", metavar="DIR", help="write work/clock heatmaps (EXR + PNG) to DIR")
     t.set_defaults(func=cmd_trace)
 
-    for module in ("store", "report", "compare"):
+    for module in ("store", "report", "compare", "profile"):
         try:
             mod = __import__(f"harness.{module}", fromlist=["register"])
         except ImportError:

@@ -1,0 +1,248 @@
+"""Results store: one directory per run.
+
+Layout (written by harness.runner, read by report and compare)::
+
+    RUN_DIR/run.json        environment of the whole run (commit, dirty, date, host, python,
+                            package versions, devices, scenario, command line)
+    RUN_DIR/results.jsonl   one JSON object per case, appended as each case finishes
+    RUN_DIR/<images>        heatmaps etc., referenced from records by relative path
+
+Records are appended while the run goes on, so a killed run can leave a half-written last
+line: `read_run` drops it (with a warning) instead of failing, and the resumed run rewrites that
+case. When a key appears twice (a case re-run after a resume) the later record wins.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import importlib.metadata
+import json
+import os
+import platform
+import socket
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+RUN_INFO = "run.json"
+RESULTS = "results.jsonl"
+
+# Packages whose versions change measured numbers or accuracy (kernel compilers, Embree,
+# mesh loading); recorded with every run so two runs can be told apart.
+TRACKED_PACKAGES = ("numpy", "trimesh", "embreex", "moderngl", "pyopencl", "matplotlib")
+
+
+def write_run_info(run_dir, info: dict) -> Path:
+    """Write RUN_DIR/run.json atomically (a reader never sees half a file)."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / RUN_INFO
+    tmp = path.with_name(RUN_INFO + ".tmp")
+    tmp.write_text(json.dumps(info, indent=2, sort_keys=True, default=str) + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def append_record(run_dir, record: dict) -> None:
+    """Append one case record as a single line (one write call, flushed)."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    line = json.dumps(record, sort_keys=True, default=str) + "\n"
+    with open(run_dir / RESULTS, "a") as f:
+        f.write(line)
+        f.flush()
+
+
+def read_records(path) -> list[dict]:
+    """Records of a results.jsonl file; unparsable lines are skipped with a warning."""
+    path = Path(path)
+    if not path.exists():
+        return []
+    by_key: dict[str, dict] = {}
+    anonymous: list[dict] = []
+    lines = path.read_text(errors="replace").splitlines()
+    for i, line in enumerate(lines):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            where = "truncated last line" if i == len(lines) - 1 else f"bad line {i + 1}"
+            warnings.warn(f"{path}: {where} skipped (interrupted run?)", stacklevel=2)
+            continue
+        if not isinstance(rec, dict):
+            warnings.warn(f"{path}: line {i + 1} is not an object; skipped", stacklevel=2)
+            continue
+        key = rec.get("key")
+        if key is None:
+            anonymous.append(rec)
+        else:
+            by_key[str(key)] = rec  # later record of the same case wins (resumed run)
+    return list(by_key.values()) + anonymous
+
+
+def read_run(run_dir) -> tuple[dict, list[dict]]:
+    """(run.json contents or {}, list of records) of one run directory."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"no run directory {run_dir}")
+    info: dict = {}
+    info_path = run_dir / RUN_INFO
+    if info_path.exists():
+        try:
+            info = json.loads(info_path.read_text())
+        except json.JSONDecodeError as e:
+            warnings.warn(f"{info_path}: unreadable ({e}); using empty run info", stacklevel=2)
+    return info, read_records(run_dir / RESULTS)
+
+
+def git_state(repo_dir=".") -> tuple[str | None, bool | None]:
+    """(commit sha, dirty) of the work tree at repo_dir; (None, None) outside a git repository.
+
+    Dirty counts modified tracked files and untracked, not ignored ones: both change what runs.
+    """
+    def git(*args):
+        return subprocess.run(["git", "-C", str(repo_dir), *args], capture_output=True,
+                              text=True, timeout=30)
+    try:
+        head = git("rev-parse", "HEAD")
+        if head.returncode != 0:
+            return None, None
+        status = git("status", "--porcelain")
+    except (OSError, subprocess.TimeoutExpired):
+        return None, None
+    return head.stdout.strip(), bool(status.stdout.strip()) if status.returncode == 0 else None
+
+
+def package_version(name: str) -> str | None:
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def environment_info() -> dict:
+    """What the machine and Python environment are; the runner adds devices and scenario."""
+    return {
+        "date": _dt.datetime.now(_dt.timezone.utc).astimezone().isoformat(timespec="seconds"),
+        "host": socket.gethostname(),
+        "machine": platform.machine(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "python_implementation": platform.python_implementation(),
+        "versions": {name: package_version(name) for name in TRACKED_PACKAGES},
+    }
+
+
+def scenario_name(info: dict) -> str | None:
+    """The scenario's name from run.json, however the runner spelled it."""
+    sc = info.get("scenario")
+    if isinstance(sc, dict):
+        return sc.get("name") or sc.get("path")
+    if info.get("scenario_name"):
+        return info["scenario_name"]
+    if sc:
+        return Path(str(sc)).stem
+    return None
+
+
+def _is_run_dir(path: Path) -> bool:
+    return (path / RESULTS).is_file() or (path / RUN_INFO).is_file()
+
+
+def summarize_run(run_dir) -> dict:
+    info, records = read_run(run_dir)
+    ok = sum(1 for r in records if r.get("status") == "ok")
+    devices = info.get("devices") or {}
+    if not devices:  # fall back on the records
+        for r in records:
+            if r.get("backend") and r.get("device"):
+                devices.setdefault(r["backend"], {"device": r["device"], "driver": r.get("driver")})
+    commit = info.get("commit")
+    if commit is None and records:
+        commit = records[0].get("commit")
+    dirty = info.get("dirty")
+    if dirty is None and records:
+        dirty = records[0].get("dirty")
+    return {
+        "dir": str(run_dir),
+        "date": info.get("date", ""),
+        "commit": commit,
+        "dirty": dirty,
+        "devices": devices,
+        "scenario": scenario_name(info),
+        "ok": ok,
+        "failed": len(records) - ok,
+    }
+
+
+def list_runs(root="reports", max_depth: int = 3) -> list[dict]:
+    """Summaries of every run directory under root (nested ones too, e.g. compare-commits
+    output DIR/<rev>), oldest first."""
+    root = Path(root)
+    found: list[Path] = []
+    if not root.is_dir():
+        return []
+    base_depth = len(root.parts)
+    for dirpath, dirnames, _ in os.walk(root):
+        p = Path(dirpath)
+        if _is_run_dir(p):
+            found.append(p)
+            dirnames[:] = []  # a run's own subfolders (heatmaps, report) are not runs
+            continue
+        if len(p.parts) - base_depth >= max_depth:
+            dirnames[:] = []
+        dirnames.sort()
+    runs = [summarize_run(p) for p in found]
+    runs.sort(key=lambda r: (r["date"] or "", r["dir"]))
+    return runs
+
+
+def format_commit(commit, dirty) -> str:
+    if not commit:
+        return "-"
+    return commit[:10] + ("+dirty" if dirty else "")
+
+
+def format_devices(devices: dict) -> str:
+    if not devices:
+        return "-"
+    parts = []
+    for backend, d in sorted(devices.items()):
+        name = d.get("device") if isinstance(d, dict) else d
+        parts.append(f"{backend}={name}")
+    return ", ".join(parts)
+
+
+def _cmd_runs(args) -> int:
+    runs = list_runs(args.root)
+    if not runs:
+        print(f"no runs under {args.root}")
+        return 0
+    for r in runs:
+        print(f"{r['dir']}  {r['date'] or '-'}  {format_commit(r['commit'], r['dirty'])}  "
+              f"[{format_devices(r['devices'])}]  ok={r['ok']} failed={r['failed']}")
+    return 0
+
+
+def register(subparsers) -> None:
+    """`lsbench runs [ROOT]`: one line per stored run."""
+    p = subparsers.add_parser("runs", help="list stored runs",
+                              description="List the run directories under ROOT (default reports).")
+    p.add_argument("root", nargs="?", default="reports", metavar="ROOT")
+    p.set_defaults(func=_cmd_runs)
+
+
+def main(argv=None) -> int:  # standalone use: python -m harness.store [ROOT]
+    parser = argparse.ArgumentParser(prog="python -m harness.store")
+    sub = parser.add_subparsers(dest="command", required=True)
+    register(sub)
+    args = parser.parse_args(["runs", *(argv if argv is not None else sys.argv[1:])])
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

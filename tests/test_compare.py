@@ -1,0 +1,247 @@
+"""Regression comparison on hand-written run directories (no GPU), and compare-commits on a
+throw-away git repository whose fake `harness.cli run` writes records."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness import compare, store
+
+GL_DEV = "llvmpipe (LLVM 15.0.6, 256 bits)"
+
+
+def record(key, trace=0.010, noise=0.01, repeats=5, agreement=1.0, status="ok", memory=1 << 20,
+           device=GL_DEV, seed=0, ray_count=10000):
+    rng = np.random.default_rng(seed)
+    rec = {"key": key, "scene": "quad", "structure": key.split("|")[0], "backend": "glsl",
+           "resolution": "64", "ls_n": 0, "rays": "primary", "ray_count": ray_count,
+           "status": status, "reason": "" if status == "ok" else "worker timed out after 900 s",
+           "device": device, "driver": "Mesa 22.3.6"}
+    if status == "ok":
+        times = [trace * (1 + noise * rng.standard_normal()) for _ in range(repeats)]
+        med = float(np.median(times))
+        rec.update(agreement=agreement, trace_seconds=med, trace_seconds_all=times,
+                   trace_seconds_min=min(times), trace_seconds_max=max(times),
+                   rays_per_second=ray_count / med, fps=1 / med, memory_bytes=memory)
+    else:
+        rec.update(agreement=None, trace_seconds=None, trace_seconds_all=[],
+                   rays_per_second=None, memory_bytes=None)
+    return rec
+
+
+def write(run_dir: Path, records, device=GL_DEV, commit="a" * 40):
+    store.write_run_info(run_dir, {"commit": commit, "dirty": False, "date": "2026-01-01T00:00:00",
+                                   "devices": {"glsl": {"device": device, "driver": "Mesa 22.3.6"}}})
+    for r in records:
+        store.append_record(run_dir, r)
+    return run_dir
+
+
+KEYS = ["grid|64", "svo|64", "esvo|64"]
+
+
+def base_run(tmp_path, seed=0):
+    return write(tmp_path / "base", [record(k, seed=seed + i) for i, k in enumerate(KEYS)])
+
+
+# ---------------------------------------------------------------- the U test
+
+def test_mann_whitney_exact_and_normal():
+    x, y = [1, 2, 3, 4, 5], [6, 7, 8, 9, 10]
+    u, p = compare.mann_whitney_less(x, y)
+    assert u == 0 and p == pytest.approx(1 / math.comb(10, 5))
+    u, p = compare.mann_whitney_less(y, x)
+    assert u == 25 and p == pytest.approx(1.0)
+    # one overlapping pair: 2 orderings out of 252 are at least as extreme
+    u, p = compare.mann_whitney_less([1, 2, 3, 4, 6.5], [6, 7, 8, 9, 10])
+    assert u == 1 and p == pytest.approx(2 / 252)
+    # counts of the exact distribution add up to C(m+n, m) and are symmetric
+    c = compare._u_counts(4, 6)
+    assert sum(c) == math.comb(10, 4) and c == c[::-1]
+    # ties: normal approximation, still says clearly apart samples differ
+    u, p = compare.mann_whitney_less([1, 1, 2, 2, 3] * 4, [5, 5, 6, 6, 7] * 4)
+    assert u == 0 and p < 1e-6
+    _, p = compare.mann_whitney_less([1, 2, 3], [1, 2, 3])
+    assert p > 0.3
+
+
+# ---------------------------------------------------------------- compare_runs
+
+def test_planted_slowdown_is_a_regression(tmp_path):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record("grid|64", trace=0.013, seed=10),  # 30% slower
+                                     record("svo|64", seed=11), record("esvo|64", seed=12)])
+    res = compare.compare_runs(base, head)
+    assert res.verdicts_given and not res.warnings
+    by = {c.key: c for c in res.cases}
+    grid = by["grid|64"]
+    assert grid.verdicts == ["speed"] and grid.ranges_disjoint
+    assert grid.speed_ratio == pytest.approx(1 / 1.3, rel=0.03)
+    assert not by["svo|64"].regression and not by["esvo|64"].regression
+    assert res.exit_code == 1
+    text = res.to_text()
+    assert "REGRESSION speed" in text and "1 regressions" in text
+
+
+def test_noise_within_factor_passes(tmp_path):
+    base = base_run(tmp_path)
+    # 4% slower on average plus noise: under the 1.1 factor
+    head = write(tmp_path / "head", [record(k, trace=0.0104, noise=0.03, seed=20 + i)
+                                     for i, k in enumerate(KEYS)])
+    res = compare.compare_runs(base, head)
+    assert not res.has_regression and res.exit_code == 0
+    assert all(c.speed_ratio > 1 / 1.1 for c in res.cases)
+
+
+def test_slowdown_inside_the_noise_is_not_a_regression(tmp_path):
+    # median 15% slower but repeats spread over a factor 2: the U test cannot tell
+    base = write(tmp_path / "base", [dict(record("grid|64"), trace_seconds_all=[0.006, 0.008, 0.010, 0.012, 0.016],
+                                          trace_seconds=0.010, rays_per_second=1e6)])
+    head = write(tmp_path / "head", [dict(record("grid|64"), trace_seconds_all=[0.007, 0.009, 0.0115, 0.013, 0.015],
+                                          trace_seconds=0.0115, rays_per_second=1e4 / 0.0115)])
+    res = compare.compare_runs(base, head)
+    c = res.cases[0]
+    assert c.speed_ratio < 1 / 1.1 and not c.ranges_disjoint and c.p_value > 0.05
+    assert not c.regression and "within noise" in " ".join(c.notes)
+
+
+def test_accuracy_drop_failure_and_memory_are_regressions(tmp_path):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [
+        record("grid|64", agreement=1 - 1 / 10000, seed=30),   # one ray more disagrees
+        record("svo|64", status="failed"),
+        record("esvo|64", memory=int(1.25 * (1 << 20)), seed=32),
+    ])
+    res = compare.compare_runs(base, head)
+    by = {c.key: c for c in res.cases}
+    assert by["grid|64"].verdicts == ["accuracy"]
+    assert by["grid|64"].agreement_delta == pytest.approx(-1e-4)
+    assert by["svo|64"].verdicts == ["failure"] and by["svo|64"].status == "ok->failed"
+    assert "timed out" in " ".join(by["svo|64"].notes)
+    assert by["esvo|64"].verdicts == ["memory"] and by["esvo|64"].bytes_ratio == pytest.approx(1.25)
+    assert res.exit_code == 1
+
+
+def test_improvements_and_added_cases_are_not_regressions(tmp_path):
+    base = write(tmp_path / "base", [record("grid|64", agreement=0.99), record("svo|64", status="failed"),
+                                     record("old|64")])
+    head = write(tmp_path / "head", [record("grid|64", trace=0.005, agreement=1.0, seed=5),
+                                     record("svo|64", seed=6), record("new|64", seed=7)])
+    res = compare.compare_runs(base, head)
+    assert not res.has_regression
+    by = {c.key: c for c in res.cases}
+    assert "faster" in by["grid|64"].notes and "fixed (failed in base)" in by["svo|64"].notes
+    assert res.only_base == ["old|64"] and res.only_head == ["new|64"]
+
+
+def test_different_devices_warn_and_give_no_verdict(tmp_path):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record("grid|64", trace=0.02, device="NVIDIA H100", seed=40),
+                                     record("svo|64", device="NVIDIA H100", seed=41),
+                                     record("esvo|64", device="NVIDIA H100", seed=42)],
+                 device="NVIDIA H100")
+    res = compare.compare_runs(base, head)
+    assert not res.verdicts_given and res.exit_code == 0
+    assert any("different devices" in w for w in res.warnings)
+    grid = next(c for c in res.cases if c.key == "grid|64")
+    assert grid.verdicts == [] and "would be: speed" in " ".join(grid.notes)
+    text = res.to_text()
+    assert "WARNING: different devices" in text and "no verdict" in text
+
+
+def test_truncated_head_is_read(tmp_path):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record(k, seed=50 + i) for i, k in enumerate(KEYS[:2])])
+    with open(head / "results.jsonl", "a") as f:
+        f.write(json.dumps(record("esvo|64"))[:40])
+    with pytest.warns(UserWarning, match="truncated"):
+        res = compare.compare_runs(base, head)
+    assert res.only_base == ["esvo|64"] and not res.has_regression
+
+
+def test_cli_compare_exit_code_and_html(tmp_path, capsys):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record("grid|64", trace=0.013, seed=60),
+                                     record("svo|64", seed=61), record("esvo|64", seed=62)])
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    compare.register(sub)
+    args = parser.parse_args(["compare", str(base), str(head), "--report"])
+    assert args.func(args) == 1
+    out = capsys.readouterr().out
+    assert "REGRESSION speed" in out and "compare.html" in out
+    page = (head / "compare.html").read_text()
+    assert "class='reg'" in page and "grid|64" in page
+    args = parser.parse_args(["compare", str(base), str(head), "--factor", "1.5"])
+    assert args.func(args) == 0
+
+
+# ---------------------------------------------------------------- compare-commits
+
+FAKE_CLI = '''
+"""Fake harness.cli: `run SCENARIO --out DIR` writes one record whose speed is SPEED."""
+import json, os, sys
+from pathlib import Path
+from harness.speed import SPEED
+args = sys.argv[1:]
+assert args[0] == "run" and args[2] == "--out", args
+out = Path(args[3]); out.mkdir(parents=True, exist_ok=True)
+scenario = Path(args[1]).read_text()
+times = [0.01 / SPEED * (1 + 0.001 * i) for i in range(5)]
+rec = {"key": "grid|64", "status": "ok", "backend": "glsl", "device": "fake", "ray_count": 1000,
+       "trace_seconds": times[2], "trace_seconds_all": times, "rays_per_second": 1000 / times[2],
+       "agreement": 1.0, "memory_bytes": 100, "scenario_text": scenario,
+       "code_dir": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
+(out / "run.json").write_text(json.dumps({"commit": "x", "devices": {"glsl": {"device": "fake"}}}))
+(out / "results.jsonl").write_text(json.dumps(rec) + "\\n")
+'''
+
+
+def _git(repo, *args):
+    return subprocess.run(["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t",
+                           *args], check=True, capture_output=True, text=True).stdout.strip()
+
+
+@pytest.mark.skipif(subprocess.run(["git", "--version"], capture_output=True).returncode != 0,
+                    reason="git not installed")
+def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path):
+    repo = tmp_path / "repo"
+    (repo / "harness").mkdir(parents=True)
+    _git(tmp_path, "init", "-q", str(repo))
+    (repo / "harness" / "__init__.py").write_text("")
+    (repo / "harness" / "__main__.py").write_text("")
+    (repo / "harness" / "cli.py").write_text(textwrap.dedent(FAKE_CLI))
+    (repo / "harness" / "speed.py").write_text("SPEED = 1.0\n")
+    _git(repo, "add", "-A")
+    _git(repo, "commit", "-q", "-m", "fast")
+    (repo / "harness" / "speed.py").write_text("SPEED = 0.7\n")  # 30 % fewer rays/s
+    _git(repo, "commit", "-q", "-am", "slow")
+    # uncommitted change in the main work tree must not leak into either revision
+    (repo / "harness" / "speed.py").write_text("SPEED = 100.0\n")
+    scenario = tmp_path / "s.toml"
+    scenario.write_text('name = "tiny"\n')
+
+    res = compare.compare_commits("HEAD~1", "HEAD", scenario, out_dir=tmp_path / "cmp",
+                                  repo_dir=repo, stream=sys.stderr)
+    c = res.cases[0]
+    assert c.verdicts == ["speed"] and c.speed_ratio == pytest.approx(0.7)
+    assert res.exit_code == 1
+    dirs = sorted(p.name for p in (tmp_path / "cmp").iterdir())
+    assert len(dirs) == 2 and dirs[0].startswith("a-HEAD_1-") and dirs[1].startswith("b-HEAD-")
+    _, recs = store.read_run(tmp_path / "cmp" / dirs[0])
+    assert recs[0]["scenario_text"] == 'name = "tiny"\n'
+    assert not recs[0]["code_dir"].startswith(str(repo))  # ran the worktree's code
+    # worktrees are gone
+    assert _git(repo, "worktree", "list").count("\n") == 0
+    assert not Path(recs[0]["code_dir"]).exists()
+
+    with pytest.raises(ValueError, match="unknown revision"):
+        compare.compare_commits("nope", "HEAD", scenario, repo_dir=repo, out_dir=tmp_path / "x")

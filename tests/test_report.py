@@ -1,0 +1,235 @@
+"""Results store and HTML report on hand-written run directories (no GPU, no driver)."""
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness import report, store
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+def fake_record(scene="sponza", structure="grid", backend="glsl", resolution="64", ls_n=0,
+                trace=0.010, repeats=5, agreement=1.0, status="ok", reason="", memory=1 << 20,
+                rng=None, heatmaps=None, device=None, rays="primary"):
+    rng = rng or np.random.default_rng(0)
+    ray_count = 128 * 96
+    times = list(trace * (1 + 0.02 * rng.standard_normal(repeats))) if status == "ok" else []
+    key = f"{scene}|{rays}|{structure}|{backend}|{resolution}|N{ls_n}"
+    rec = {
+        "key": key, "scene": f"/data/{scene}.ply", "scene_hash": "abc", "triangles": 1000,
+        "structure": structure, "backend": backend, "resolution": str(resolution), "ls_n": ls_n,
+        "ls_min_candidates": 4 if ls_n else 0, "rays": rays, "ray_count": ray_count,
+        "width": 128, "height": 96, "status": status, "reason": reason,
+        "device": device or ("llvmpipe (LLVM 15.0.6, 256 bits)" if backend == "glsl" else "pthread-cpu"),
+        "driver": "Mesa 22.3.6" if backend == "glsl" else "PoCL 3.1", "backend_version": "x",
+        "commit": "0123456789abcdef", "dirty": False, "clock": "perf_counter",
+        "heatmaps": heatmaps or {}, "stats": {"iterations_mean": 12.5}, "buffers": {},
+    }
+    if status == "ok":
+        n_agree = int(round(agreement * ray_count))
+        med = float(np.median(times))
+        rec.update({
+            "agreement": n_agree / ray_count, "agree": n_agree - 3, "ties": 3,
+            "missed": ray_count - n_agree, "extra": 0, "wrong": 0, "max_abs_dt": 1e-6,
+            "median_abs_dt": 0.0, "build_seconds": 0.05 * int(str(resolution).split("x")[0]) / 32,
+            "trace_seconds": med, "trace_seconds_all": times, "trace_seconds_min": min(times),
+            "trace_seconds_max": max(times), "trace_cv": float(np.std(times) / np.mean(times)),
+            "rays_per_second": ray_count / med, "fps": 1.0 / med, "memory_bytes": memory,
+            "buffers": {"voxels": {"allocated": memory, "used": memory * 3 // 4},
+                        "lists": {"allocated": memory // 4, "used": memory // 4}},
+        })
+    else:
+        rec.update({"agreement": None, "agree": None, "ties": None, "missed": None, "extra": None,
+                    "wrong": None, "max_abs_dt": None, "median_abs_dt": None,
+                    "build_seconds": None, "trace_seconds": None, "trace_seconds_all": [],
+                    "trace_seconds_min": None, "trace_seconds_max": None, "trace_cv": None,
+                    "rays_per_second": None, "fps": None, "memory_bytes": None})
+    return rec
+
+
+FAIL_REASON = "DeviceLimitError: Line Space needs 5.1 GiB > max allocation 1 GiB"
+
+
+def make_run(run_dir: Path, with_heatmap=True) -> list[dict]:
+    rng = np.random.default_rng(1)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    hm = {}
+    if with_heatmap:
+        import matplotlib.image
+        (run_dir / "heatmaps").mkdir()
+        img = np.linspace(0, 1, 64 * 48).reshape(48, 64)
+        matplotlib.image.imsave(run_dir / "heatmaps" / "sponza_grid_64_iterations.png", img,
+                                cmap="inferno")
+        hm = {"iterations": "heatmaps/sponza_grid_64_iterations.png"}
+    records = []
+    speed = {"grid": 1.0, "svo": 0.7, "esvo": 0.8, "grid-ls": 0.5, "svo-ls": 0.6, "esvo-ls": 0.55}
+    for scene in ("sponza", "bmw_m6"):
+        for backend in ("glsl", "opencl"):
+            for s in ("grid", "svo", "esvo"):
+                for res in (32, 64, 128):
+                    records.append(fake_record(
+                        scene, s, backend, res, trace=0.01 * speed[s] * (1 + abs(res - 64) / 64),
+                        memory=int(res ** 3 * 4 * (1 + 0.5 * (s == "svo"))), rng=rng,
+                        agreement=1.0 if s != "esvo" else 0.9995,
+                        heatmaps=hm if (scene, s, res, backend) == ("sponza", "grid", 64, "glsl") else None))
+            for s in ("grid-ls", "svo-ls", "esvo-ls"):
+                for n in (1, 2):
+                    for res in (32, 64):
+                        if (s, n, res) == ("grid-ls", 2, 64):
+                            records.append(fake_record(scene, s, backend, res, ls_n=n,
+                                                       status="failed", reason=FAIL_REASON))
+                            continue
+                        records.append(fake_record(scene, s, backend, res, ls_n=n, rng=rng,
+                                                   trace=0.004 * speed[s] * n, memory=int(15 * n ** 4 * res ** 3 / 8),
+                                                   agreement=1 - 1e-4 * n))
+    info = store.environment_info()
+    info.update({"commit": "0123456789abcdef", "dirty": True,
+                 "devices": {"glsl": {"device": "llvmpipe (LLVM 15.0.6, 256 bits)", "driver": "Mesa 22.3.6"},
+                             "opencl": {"device": "pthread-cpu", "driver": "PoCL 3.1"}},
+                 "scenario": {"name": "fake", "path": "scenarios/fake.toml"},
+                 "command": "lsbench run scenarios/fake.toml"})
+    store.write_run_info(run_dir, info)
+    for r in records:
+        store.append_record(run_dir, r)
+    return records
+
+
+def test_read_run_tolerates_truncated_last_line(tmp_path):
+    recs = make_run(tmp_path / "run", with_heatmap=False)
+    path = tmp_path / "run" / "results.jsonl"
+    with open(path, "a") as f:
+        f.write('{"key": "half-written", "status": "o')  # killed mid-write
+    with pytest.warns(UserWarning, match="truncated"):
+        info, got = store.read_run(tmp_path / "run")
+    assert len(got) == len(recs)
+    assert info["scenario"]["name"] == "fake"
+    assert {r["key"] for r in got} == {r["key"] for r in recs}
+
+
+def test_read_run_later_record_of_a_key_wins(tmp_path):
+    d = tmp_path / "run"
+    store.append_record(d, fake_record(status="failed", reason="timeout"))
+    store.append_record(d, fake_record())
+    info, recs = store.read_run(d)
+    assert info == {} and len(recs) == 1 and recs[0]["status"] == "ok"
+
+
+def test_git_state_and_environment(tmp_path):
+    commit, dirty = store.git_state(Path(__file__).parent)
+    assert commit is None or len(commit) == 40
+    assert store.git_state(tmp_path) == (None, None)
+    env = store.environment_info()
+    assert env["versions"]["numpy"] == np.__version__
+    assert "T" in env["date"] and env["python"]
+
+
+def test_list_runs(tmp_path, capsys):
+    make_run(tmp_path / "reports" / "a", with_heatmap=False)
+    store.append_record(tmp_path / "reports" / "cmp" / "b-HEAD", fake_record(status="failed", reason="x"))
+    runs = store.list_runs(tmp_path / "reports")
+    assert [Path(r["dir"]).name for r in runs] == ["b-HEAD", "a"]  # undated first
+    a = runs[1]
+    assert a["ok"] == len(store.read_run(a["dir"])[1]) - 4 and a["failed"] == 4
+    import argparse
+    parser = argparse.ArgumentParser()
+    store.register(parser.add_subparsers())
+    args = parser.parse_args(["runs", str(tmp_path / "reports")])
+    assert args.func(args) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 2 and "0123456789+dirty" in out[1] and "ok=80 failed=4" in out[1]
+
+
+def test_pareto_front():
+    pts = [(0.0, 1.0), (0.0, 2.0), (0.1, 3.0), (0.2, 2.5), (0.3, 5.0)]
+    assert report.pareto_front(pts) == [1, 2, 4]
+
+
+@pytest.fixture(scope="module")
+def written_report(tmp_path_factory):
+    run = tmp_path_factory.mktemp("rep") / "run"
+    records = make_run(run)
+    index = report.write_report(run)
+    return run, index, records
+
+
+def test_report_tables_and_failed_reason(written_report):
+    run, index, records = written_report
+    assert index == run / "index.html"
+    page = index.read_text()
+    for title in ("Table 1", "Table 2", "Table 3", "Speed against accuracy", "Build time",
+                  "Spread of the timing repeats", "Heatmaps", "All cases"):
+        assert title in page
+    assert "class='fail'" in page and "Line Space needs 5.1 GiB" in page
+    assert "llvmpipe" in page and "pthread-cpu" in page
+    assert "0123456789+dirty" in page
+    assert "http://" not in page and "https://" not in page and "<script" not in page
+    # Table 3 has N rows
+    t3 = page[page.index("id='table3'"):page.index("id='speed'")]
+    assert "N=1" in t3 and "N=2" in t3 and "grid-ls" in t3 and "failed: DeviceLimitError" in t3
+
+
+def test_report_charts_exist(written_report):
+    run, index, _ = written_report
+    page = index.read_text()
+    charts = sorted((run / "charts").glob("*.png"))
+    kinds = {p.name.split("_")[0] for p in charts}
+    assert {"speed", "build", "repeats"} <= kinds
+    assert len(charts) == 6  # 2 scenes x 3 charts
+    import matplotlib.image
+    for p in charts:
+        assert p.stat().st_size > 5000
+        assert f"charts/{p.name}" in page
+        img = matplotlib.image.imread(p)
+        assert img.shape[0] > 200 and img.shape[1] > 400 and img[..., :3].std() > 0.05
+    assert "heatmaps/sponza_grid_64_iterations.png" in page
+
+
+def test_report_out_dir_copies_heatmaps(written_report, tmp_path):
+    run, _, _ = written_report
+    index = report.write_report(run, tmp_path / "elsewhere")
+    page = index.read_text()
+    assert index.parent == tmp_path / "elsewhere"
+    copied = list((tmp_path / "elsewhere" / "heatmaps").glob("*.png"))
+    assert len(copied) == 1 and f"heatmaps/{copied[0].name}" in page
+
+
+def test_report_of_all_failed_and_empty_runs(tmp_path):
+    d = tmp_path / "failed"
+    store.append_record(d, fake_record(status="failed", reason="worker crashed: SIGSEGV"))
+    page = report.write_report(d).read_text()
+    assert "SIGSEGV" in page and "No successful case to plot" in page
+    (tmp_path / "empty").mkdir()
+    assert report.write_report(tmp_path / "empty").exists()
+
+
+def test_report_cli(written_report, tmp_path, capsys):
+    import argparse
+    run, _, _ = written_report
+    parser = argparse.ArgumentParser()
+    report.register(parser.add_subparsers())
+    args = parser.parse_args(["report", str(run), "--out", str(tmp_path / "o")])
+    assert args.func(args) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "o" / "index.html")
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists(),
+                    reason=f"{CHROMIUM} absent (apt-get install -y chromium) — page not rendered")
+def test_report_renders_in_headless_chromium(written_report, tmp_path):
+    _, index, _ = written_report
+    shot = tmp_path / "shot.png"
+    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+           "--disable-component-update", "--disable-sync", "--no-first-run",
+           f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}",
+           "--window-size=1280,2000", index.resolve().as_uri()]
+    subprocess.run(cmd, capture_output=True, timeout=120)
+    assert shot.exists() and shot.stat().st_size > 10000
+    import matplotlib.image
+    img = matplotlib.image.imread(shot)[..., :3]
+    assert img.shape[:2] == (2000, 1280)
+    # not blank: many distinct colours, real contrast (text, red failed cells, tables)
+    assert img.std() > 0.05
+    assert len(np.unique((img.reshape(-1, 3) * 255).astype(np.uint8), axis=0)) > 50
