@@ -95,6 +95,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             from . import profile
 
             rec["heatmaps"] = profile.write_heatmaps(built, rays, heatmap_dir, case.key)
+            rec["work_clock"] = profile.clock_info(device)
         rec["status"] = "ok"
         rec["reason"] = ""
     except (DeviceLimitError, DeviceError, ValueError, MemoryError) as exc:

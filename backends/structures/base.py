@@ -112,7 +112,23 @@ class Hits:
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
 
 
-def with_work_counters(spec: KernelSpec) -> KernelSpec:
-    """The profiling variant of a traversal kernel: COUNT_WORK compiled in, a work buffer added."""
+def clock_defines(device: Device | None) -> tuple[tuple[str, str], ...]:
+    """Defines that give the profiling kernels a device clock (CLOCK_START()/CLOCK_ELAPSED(),
+    preludes + common/scene.h), only where the device has one: GL_ARB_shader_clock in GLSL
+    (glsl.py then adds the #extension line); NVIDIA's %clock register via inline PTX in OpenCL.
+    PoCL and other OpenCL devices get none: their clock field reads 0 (harness/profile.py says why)."""
+    if device is None:
+        return ()
+    info = device.info()
+    if info.get("backend") == "glsl" and info.get("shader_clock"):
+        return (("USE_CLOCK", "1"),)
+    if info.get("backend") == "opencl" and "nvidia" in str(info.get("vendor", "")).lower():
+        return (("USE_CLOCK", "1"), ("CLOCK_PTX", "1"))
+    return ()
+
+
+def with_work_counters(spec: KernelSpec, device: Device | None = None) -> KernelSpec:
+    """The profiling variant of a traversal kernel: COUNT_WORK compiled in, a work buffer added,
+    and the device clock where `device` has one (without a device the clock field stays 0)."""
     return dataclasses.replace(spec, name=spec.name + "_work", buffers=spec.buffers + (WORK_BUFFER,),
-                               defines=spec.defines + (("COUNT_WORK", "1"),))
+                               defines=spec.defines + (("COUNT_WORK", "1"),) + clock_defines(device))

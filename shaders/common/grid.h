@@ -107,6 +107,9 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
 // (t <= the voxel's exit + a float tolerance): a triangle spanning several voxels could
 // otherwise end the walk with a hit that a later-listed, nearer triangle in the next voxel beats.
 INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+#ifdef COUNT_WORK
+    uint clock0 = CLOCK_START();
+#endif
     Hit best = no_hit(tmax);
     WRay wr = make_wray(o, d);
     float3 og = to_grid(CTX_ARG o);
@@ -157,7 +160,7 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
         }
     }
 #ifdef COUNT_WORK
-    V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
+    V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
 #endif
     return best;
 }

@@ -29,3 +29,19 @@ INLINE Hit closer(Hit best, float t, int prim, float tmin) {
     }
     return best;
 }
+
+// Tick source of CLOCK_START()/CLOCK_ELAPSED() (preludes). USE_CLOCK and CLOCK_PTX come from
+// with_work_counters (backends/structures/base.py) only where the device has a clock; every
+// other build reads 0, so the counters' clock field is 0 there.
+#if defined(USE_CLOCK) && defined(LANG_GLSL)
+#define CLOCK_NOW() clock2x32ARB().x
+#elif defined(USE_CLOCK) && defined(CLOCK_PTX)
+INLINE uint clock_now_ptx(void) {
+    uint c;
+    __asm__ __volatile__("mov.u32 %0, %%clock;" : "=r"(c));
+    return c;
+}
+#define CLOCK_NOW() clock_now_ptx()
+#else
+#define CLOCK_NOW() 0u
+#endif

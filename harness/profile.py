@@ -1,0 +1,462 @@
+"""Profiling: per-ray work counters as heatmaps (EXR + PNG + JSON summary), the device clock,
+and the stability of timing figures (`lsbench stability`).
+
+Heatmaps (thesis Fig. 4 and Fig. 20): the profiling variant of a traversal kernel (COUNT_WORK,
+backends.trace(..., work=True)) writes per ray uint4(iterations, candidate tests, Line Space
+lookups, clock ticks). `write_heatmaps` lays them out as the ray image (row 0 = top, as
+harness.rays.primary_rays) and writes into OUT_DIR:
+
+    <case>.exr                       float32, one channel per counter (CHANNELS), exact values
+    <case>_iterations_p99.png        inferno, 0 .. 99th percentile (clamped above)
+    <case>_candidate_tests_p99.png   inferno, 0 .. 99th percentile
+    <case>_candidate_tests_max32.png inferno, 0 .. 32 ("32 or more tests", thesis Fig. 4; the
+                                     fixed scale compares across cases, saturates on dense scenes)
+    <case>_linespace_lookups_p99.png inferno, 0 .. 99th percentile      (only if any are non-zero)
+    <case>_clock_p99.png             inferno, 0 .. 99th percentile      (only with a device clock)
+    <case>_clock_over_scene_p99.png  clock in red over the grey-shaded hits (thesis Fig. 20b)
+    <case>_combined.png              iterations in yellow (0 .. p99), candidate tests in blue
+                                     (0 .. p99), like thesis Fig. 20a (both high = white)
+    <case>_work.json                 per counter mean/max/percentiles, the normalization of every
+                                     PNG, the clock's unit (or why there is none)
+
+<case> is the case key with every character outside [A-Za-z0-9.-] replaced by '_'. The returned
+dict maps names (exr, iterations, candidate_tests, ..., summary) to paths RELATIVE TO
+OUT_DIR's PARENT: runs write into RUN_DIR/heatmaps, so records hold "heatmaps/<file>" relative to
+the run folder (what harness.report expects); `lsbench trace --heatmaps DIR` gives paths relative
+to DIR/.. in the same way. Ray sets that are not images (width 0, e.g. a .npz) are laid out row-major
+as the case's WxH when that holds exactly the rays, else in a near-square image, ray i at
+(i // W, i % W), padding NaN in the EXR and black in the PNGs.
+
+Clock: CLOCK_START()/CLOCK_ELAPSED() (preludes, common/scene.h). GLSL reads clock2x32ARB().x
+where the driver has GL_ARB_shader_clock (Mesa llvmpipe: nanoseconds, only the low 32 bits valid,
+8 SIMD lanes share one value, so the clock image is constant over runs of 8 rays; NVIDIA: shader
+clock cycles). OpenCL C has no clock builtin: NVIDIA devices read %clock by inline PTX, every other
+device (PoCL's CPU device here) has none and its clock field is 0; `clock_info` says why. With a
+clock the profiling trace runs CLOCK_RUNS times and keeps each ray's minimum clock: the counters
+are deterministic, and on llvmpipe the ns clock is wall time, so a preempted host thread would
+otherwise paint an 8-ray streak of milliseconds.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import re
+import statistics
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+CHANNELS = ("iterations", "candidate_tests", "linespace_lookups", "clock")
+CANDIDATE_TESTS_MAX = 32  # thesis Fig. 4: "blue = 32 or more tests"
+PERCENTILE = 99.0
+CLOCK_RUNS = 3  # profiling traces per case where there is a clock (per-ray minimum is kept)
+COLORMAP = "inferno"
+
+
+# ---- clock ------------------------------------------------------------------------------------
+def clock_info(device) -> dict:
+    """What the clock field of the work counters holds on `device` (mirrors
+    backends.structures.base.clock_defines, which decides whether the kernels read a clock)."""
+    from backends.structures.base import clock_defines
+
+    info = device.info()
+    name = info.get("device", "?")
+    defines = dict(clock_defines(device))
+    if info.get("backend") == "glsl":
+        if defines.get("USE_CLOCK"):
+            if "llvmpipe" in name.lower():
+                unit = "ns"
+                note = (f"GL_ARB_shader_clock on {name}: clock2x32ARB() ticks in nanoseconds (wall time), only "
+                        "the low 32 bits are valid, 8 SIMD lanes share one value (per-ray time of its 8-ray group)")
+            else:
+                unit = "shader clock ticks"
+                note = f"GL_ARB_shader_clock (clock2x32ARB().x, low 32 bits) on {name}; GPU cycles on NVIDIA"
+            return {"available": True, "unit": unit, "source": "clock2x32ARB", "note": note}
+        return {"available": False, "unit": None, "source": None,
+                "note": f"no device clock on {name}: the GL driver lacks GL_ARB_shader_clock"}
+    if defines.get("CLOCK_PTX"):
+        return {"available": True, "unit": "SM clock cycles", "source": "PTX %clock",
+                "note": f"%clock register read by inline PTX on {name} (per-SM cycle counter, 32 bits)"}
+    why = ("PoCL's CPU device has no kernel-readable clock and OpenCL C has no clock builtin"
+           if "portable computing language" in str(info.get("driver", "")).lower()
+           else "OpenCL C has no clock builtin and only NVIDIA devices get one (inline PTX %clock)")
+    return {"available": False, "unit": None, "source": None, "note": f"no device clock on {name}: {why}"}
+
+
+# ---- layout -----------------------------------------------------------------------------------
+def image_shape(rays, case_key: str = "") -> tuple[int, int]:
+    """(height, width) of the heatmap: the camera image; else the case's WxH (the key's '@WxH')
+    when it holds exactly the rays (a .npz of camera rays traced with --size WxH); else a
+    near-square layout."""
+    if rays.width > 0 and rays.height > 0 and rays.width * rays.height == rays.count:
+        return rays.height, rays.width
+    m = re.search(r"@(\d+)x(\d+)", case_key)
+    if m and int(m.group(1)) * int(m.group(2)) == rays.count:
+        return int(m.group(2)), int(m.group(1))
+    w = max(1, math.ceil(math.sqrt(rays.count)))
+    return max(1, math.ceil(rays.count / w)), w
+
+
+def to_image(values: np.ndarray, shape: tuple[int, int], fill=np.nan) -> np.ndarray:
+    """Per-ray values (ray i = row-major pixel i, row 0 = top) as a float32 (H, W) image."""
+    h, w = shape
+    flat = np.full(h * w, fill, np.float32)
+    flat[:len(values)] = values
+    return flat.reshape(h, w)
+
+
+def counter_images(work: np.ndarray, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    return {name: to_image(work[:, i].astype(np.float32), shape) for i, name in enumerate(CHANNELS)}
+
+
+def case_slug(case_key: str) -> str:
+    return re.sub(r"[^A-Za-z0-9.\-]+", "_", case_key).strip("_") or "case"
+
+
+# ---- files ------------------------------------------------------------------------------------
+def write_exr(path, channels: dict[str, np.ndarray], attributes: dict | None = None) -> None:
+    """float32 scanline EXR, one named channel per array (OpenEXR 3.x Python API)."""
+    import OpenEXR
+
+    header = {"type": OpenEXR.scanlineimage, "compression": OpenEXR.ZIP_COMPRESSION}
+    header.update({k: str(v) for k, v in (attributes or {}).items()})
+    data = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
+    OpenEXR.File(header, data).write(str(path))
+
+
+def read_exr(path) -> dict[str, np.ndarray]:
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        return {name: np.array(ch.pixels) for name, ch in f.channels().items()}
+
+
+def write_png(path, rgb: np.ndarray) -> None:
+    """8-bit RGB PNG from an (H, W, 3) uint8 array (no imaging library needed)."""
+    rgb = np.ascontiguousarray(rgb, np.uint8)
+    h, w, _ = rgb.shape
+    raw = b"".join(b"\x00" + rgb[y].tobytes() for y in range(h))  # filter 0 on every row
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    Path(path).write_bytes(png)
+
+
+def png_size(path) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR."""
+    data = Path(path).read_bytes()[:24]
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise ValueError(f"{path} is not a PNG")
+    return struct.unpack(">II", data[16:24])
+
+
+def normalize(img: np.ndarray, vmax: float) -> np.ndarray:
+    """0 .. vmax -> 0 .. 1, clamped; NaN (padding) -> 0."""
+    out = np.nan_to_num(img / max(float(vmax), 1e-30), nan=0.0)
+    return np.clip(out, 0.0, 1.0)
+
+
+def colorize(img: np.ndarray, vmax: float, cmap: str = COLORMAP) -> np.ndarray:
+    from matplotlib import colormaps
+
+    rgb = colormaps[cmap](normalize(img, vmax))[..., :3]
+    rgb[np.isnan(img)] = 0.0
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def combined_rgb(iterations: np.ndarray, tests: np.ndarray, it_max: float, tests_max: float) -> np.ndarray:
+    """Thesis Fig. 20a: iterations in the yellow channel (red + green), candidate tests in blue."""
+    it = normalize(iterations, it_max)
+    ct = normalize(tests, tests_max)
+    rgb = np.stack([it, it, ct], axis=-1)
+    return (rgb * 255.0 + 0.5).astype(np.uint8)
+
+
+def shading(built, rays, hits) -> np.ndarray:
+    """|cos| between ray and the hit triangle's normal (0 for a miss): a grey view of the scene."""
+    d = built.device
+    verts = d.read(built.scene_buffers["vertices"], np.float32).reshape(-1, 3)
+    faces = d.read(built.scene_buffers["faces"], np.uint32).reshape(-1, 3)
+    prim = hits.prim_ids
+    out = np.zeros(len(prim), np.float32)
+    ok = (prim >= 0) & (prim < len(faces))
+    tri = verts[faces[prim[ok]]]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    out[ok] = np.abs(np.einsum("ij,ij->i", n, rays.directions[ok]))
+    return out
+
+
+def clock_over_scene(clock: np.ndarray, shade: np.ndarray, vmax: float, scene_weight: float = 0.25) -> np.ndarray:
+    """Thesis Fig. 20b: clock in red over the scene drawn grey (there at 5 % opacity; 25 % here
+    so the small images stay readable)."""
+    c = normalize(clock, vmax)
+    g = np.nan_to_num(shade, nan=0.0) * scene_weight
+    rgb = np.stack([np.maximum(c, g), g * (1.0 - c), g * (1.0 - c)], axis=-1)
+    return (np.clip(rgb, 0, 1) * 255.0 + 0.5).astype(np.uint8)
+
+
+def counter_stats(values: np.ndarray) -> dict:
+    v = values.astype(np.float64)
+    if v.size == 0:
+        return {"mean": 0.0, "max": 0, "p50": 0.0, "p99": 0.0, "sum": 0, "nonzero": 0}
+    return {"mean": float(v.mean()), "max": int(values.max()), "p50": float(np.percentile(v, 50)),
+            "p99": float(np.percentile(v, PERCENTILE)), "sum": int(values.astype(np.uint64).sum()),
+            "nonzero": int(np.count_nonzero(values))}
+
+
+def _p99(values: np.ndarray) -> float:
+    return max(1.0, float(np.percentile(values.astype(np.float64), PERCENTILE))) if values.size else 1.0
+
+
+# ---- heatmaps ---------------------------------------------------------------------------------
+def profile_trace(built, rays, clock_runs: int = CLOCK_RUNS):
+    """The profiling trace, run clock_runs times where the device has a clock: the counters must
+    agree between runs (they are deterministic); the clock is the per-ray minimum, which drops
+    the host threads' preemption that the llvmpipe ns clock (wall time) otherwise shows as
+    isolated 8-pixel streaks of milliseconds. Returns (hits, work)."""
+    import backends
+
+    hits = backends.trace(built, rays, work=True)
+    work = hits.work.copy()
+    if clock_info(built.device)["available"] and work[:, 3].any():  # skip kernels that leave it 0
+        for _ in range(max(clock_runs, 1) - 1):
+            again = backends.trace(built, rays, work=True).work
+            if not np.array_equal(again[:, :3], work[:, :3]):
+                raise RuntimeError(f"{built.structure}: work counters differ between two identical profiling traces")
+            work[:, 3] = np.minimum(work[:, 3], again[:, 3])
+    return hits, work
+
+
+def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_RUNS) -> dict[str, str]:
+    """Trace `rays` with the profiling kernel of `built` and write the heatmaps listed in the
+    module docstring to out_dir. Returns {name: path relative to out_dir's parent}."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    base = out.parent
+    slug = case_slug(case_key)
+    hits, work = profile_trace(built, rays, clock_runs)
+    shape = image_shape(rays, case_key)
+    images = counter_images(work, shape)
+    clock = dict(clock_info(built.device))
+    if clock["available"] and work[:, 3].any():
+        clock["runs"] = max(clock_runs, 1)
+        clock["combine"] = "per-ray minimum over the runs (drops host preemption)"
+    info = built.device.info()
+    files: dict[str, str] = {}
+
+    def rel(p: Path) -> str:
+        return p.relative_to(base).as_posix()
+
+    exr = out / f"{slug}.exr"
+    write_exr(exr, images, {"lsbench_case": case_key, "lsbench_clock_unit": clock["unit"] or "none (zero)",
+                            "lsbench_device": info.get("device", "")})
+    files["exr"] = rel(exr)
+
+    norms: dict[str, dict] = {}
+    stats = {name: counter_stats(work[:, i]) for i, name in enumerate(CHANNELS)}
+    clock["filled"] = stats["clock"]["nonzero"] > 0  # False: no clock, or the kernel does not read it
+    skipped = {}
+    maps = [(name, i, _p99(work[:, i]), f"{PERCENTILE:g}th percentile clamp", "p99")
+            for i, name in enumerate(CHANNELS)]
+    # The thesis' fixed scale too (Fig. 4), comparable across cases; it saturates on dense scenes.
+    maps.insert(2, ("candidate_tests_max32", 1, float(CANDIDATE_TESTS_MAX),
+                    f"fixed maximum {CANDIDATE_TESTS_MAX} (32 or more tests = top colour, thesis Fig. 4)", ""))
+    for name, i, vmax, rule, tag in maps:
+        if i >= 2 and stats[CHANNELS[i]]["nonzero"] == 0:
+            if name != "clock":
+                skipped[name] = f"all zero for {built.structure}"
+            elif not clock["available"]:
+                skipped[name] = clock["note"]
+            else:
+                skipped[name] = (f"the {built.structure} kernel leaves the clock field 0 (no "
+                                 "CLOCK_START()/CLOCK_ELAPSED() in its COUNT_WORK block)")
+            continue
+        path = out / (f"{slug}_{name}_{tag}.png" if tag else f"{slug}_{name}.png")
+        write_png(path, colorize(images[CHANNELS[i]], vmax))
+        files[name] = rel(path)
+        norms[name] = {"file": rel(path), "colormap": COLORMAP, "min": 0.0, "max": vmax, "rule": rule}
+
+    it_max, ct_max = norms["iterations"]["max"], norms["candidate_tests"]["max"]
+    path = out / f"{slug}_combined.png"
+    write_png(path, combined_rgb(images["iterations"], images["candidate_tests"], it_max, ct_max))
+    files["combined"] = rel(path)
+    norms["combined"] = {"file": rel(path), "rule": "thesis Fig. 20a: red+green (yellow) = iterations / max_iterations, "
+                         "blue = candidate tests / max_candidate_tests, both clamped to 1 (99th percentiles)",
+                         "max_iterations": it_max, "max_candidate_tests": ct_max}
+
+    if "clock" in files:
+        shade = to_image(shading(built, rays, hits), shape)
+        vmax = norms["clock"]["max"]
+        path = out / f"{slug}_clock_over_scene_p99.png"
+        write_png(path, clock_over_scene(images["clock"], shade, vmax))
+        files["clock_over_scene"] = rel(path)
+        norms["clock_over_scene"] = {"file": rel(path), "rule": "thesis Fig. 20b: red = clock / max (99th "
+                                     "percentile clamp) over the hits shaded grey at 25 %", "max": vmax}
+
+    hit = hits.prim_ids >= 0
+    summary = {
+        "case": case_key, "structure": built.structure, "device": info.get("device"), "driver": info.get("driver"),
+        "backend": info.get("backend"), "ray_count": int(rays.count), "width": shape[1], "height": shape[0],
+        "layout": ("camera image, row 0 = top, ray i = pixel (i % width, i // width)" if rays.width > 0
+                   and rays.width * rays.height == rays.count else
+                   "ray file laid out as the case's WxH: ray i at row i // width, column i % width"
+                   if shape[0] * shape[1] == rays.count else
+                   "not an image: ray i at row i // width, column i % width; padding NaN (EXR) / black (PNG)"),
+        "hit_fraction": float(hit.mean()) if hit.size else 0.0,
+        "clock": clock, "counters": stats,
+        "counters_hit_rays": {name: counter_stats(work[hit, i]) for i, name in enumerate(CHANNELS)},
+        "normalization": norms, "not_drawn": skipped,
+        "exr_channels": list(CHANNELS), "files": dict(files),
+    }
+    path = out / f"{slug}_work.json"
+    path.write_text(json.dumps(summary, indent=2))
+    files["summary"] = rel(path)
+    return files
+
+
+# ---- timing stability -------------------------------------------------------------------------
+def spread(records: list[dict], field: str = "trace_seconds") -> dict:
+    """Spread of one timing field over repeated runs of a case (failed runs listed, not counted)."""
+    values = [float(r[field]) for r in records if r.get("status") == "ok" and r.get(field) is not None]
+    failed = [r.get("reason") for r in records if r.get("status") != "ok"]
+    if not values:
+        return {"runs": len(records), "ok": 0, "values": [], "failed": failed}
+    med = statistics.median(values)
+    mean = statistics.fmean(values)
+    out = {
+        "runs": len(records), "ok": len(values), "values": values, "median": med,
+        "min": min(values), "max": max(values),
+        # (max - min) / median: how far two runs of the same case can lie apart.
+        "spread": (max(values) - min(values)) / med if med > 0 else 0.0,
+        "cv": statistics.pstdev(values) / mean if len(values) > 1 and mean > 0 else 0.0,
+        "failed": failed,
+    }
+    if field == "trace_seconds":
+        cvs = [float(r["trace_cv"]) for r in records if r.get("status") == "ok" and r.get("trace_cv") is not None]
+        out["within_run_cv"] = cvs  # each run's CV over its own repeats
+        out["within_run_cv_mean"] = statistics.fmean(cvs) if cvs else None
+    return out
+
+
+def timing_stability(case, settings, runs: int = 3, env: dict | None = None, log=None) -> dict:
+    """Run `case` `runs` times in this process (execute: build + trace + timing each time) and
+    `runs` times each in a fresh worker process (runner.run_case_isolated), and return the spread
+    of the median trace time (and build time) within each group and across both."""
+    from .execute import execute
+    from .runner import run_case_isolated
+
+    log = log or (lambda *a: None)
+    env = env or {}
+    in_proc, cross = [], []
+    for i in range(runs):
+        rec = execute(case, settings, env)
+        log(f"in-process run {i + 1}/{runs}: " + _brief(rec))
+        in_proc.append(rec)
+    for i in range(runs):
+        rec = run_case_isolated(case, settings, env)
+        log(f"separate process {i + 1}/{runs}: " + _brief(rec))
+        cross.append(rec)
+    ok = [r for r in in_proc + cross if r.get("status") == "ok"]
+    first = ok[0] if ok else (in_proc + cross)[0]
+    result = {
+        "case": case.key, "runs": runs, "repeats": settings.repeats, "warmup": settings.warmup,
+        "device": first.get("device"), "driver": first.get("driver"), "clock": first.get("clock"),
+        "ray_count": first.get("ray_count"),
+        "in_process": spread(in_proc), "cross_process": spread(cross), "all": spread(in_proc + cross),
+        "build_in_process": spread(in_proc, "build_seconds"),
+        "build_cross_process": spread(cross, "build_seconds"),
+    }
+    a, b = result["in_process"].get("median"), result["cross_process"].get("median")
+    # > 1: a fresh process is slower (or faster, < 1) than the one that already ran the case.
+    result["cross_over_in_process_median"] = b / a if a and b else None
+    return result
+
+
+def _brief(rec: dict) -> str:
+    if rec.get("status") != "ok":
+        return f"FAILED: {rec.get('reason')}"
+    return (f"trace median {rec['trace_seconds'] * 1e3:.3f} ms (cv {rec['trace_cv'] * 100:.1f}%), "
+            f"build {rec['build_seconds'] * 1e3:.1f} ms")
+
+
+def stability_text(result: dict) -> str:
+    lines = [f"timing stability of {result['case']} on {result.get('device')} ({result.get('clock')}), "
+             f"{result['runs']} runs x {result['repeats']} repeats"]
+    for label, key in (("trace, same process", "in_process"), ("trace, separate processes", "cross_process"),
+                       ("trace, all runs", "all"), ("build, same process", "build_in_process"),
+                       ("build, separate processes", "build_cross_process")):
+        s = result[key]
+        if not s.get("ok"):
+            lines.append(f"  {label:27s} no successful run: {s.get('failed')}")
+            continue
+        extra = ""
+        if s.get("within_run_cv_mean") is not None:
+            extra = f"  within-run cv {s['within_run_cv_mean'] * 100:.1f}%"
+        lines.append(f"  {label:27s} median {s['median'] * 1e3:9.3f} ms  min {s['min'] * 1e3:9.3f}  "
+                     f"max {s['max'] * 1e3:9.3f}  spread {s['spread'] * 100:5.1f}%  cv {s['cv'] * 100:5.1f}%{extra}")
+    r = result.get("cross_over_in_process_median")
+    if r:
+        lines.append(f"  separate / same process median: {r:.3f}")
+    return "\n".join(lines)
+
+
+def cmd_stability(args) -> int:
+    from .cli import UsageError, _parse_size, record_env
+    from .scenario import REPO_ROOT, Case, RunSettings
+    from .scenes import load_scene
+
+    width, height = _parse_size(args.size)
+    if args.processes < 1:
+        raise UsageError("--processes must be at least 1")
+    load_scene(args.scene)  # bad input fails here, before any worker starts
+    case = Case(args.scene, args.structure, args.backend, str(args.resolution), args.ls_n,
+                args.ls_min_candidates, args.rays, width, height)
+    settings = RunSettings(width=width, height=height, rays=args.rays, repeats=args.repeats,
+                           warmup=args.warmup, timeout_seconds=args.timeout)
+    env = record_env()
+    result = timing_stability(case, settings, args.processes, env,
+                              log=lambda m: print(m, file=sys.stderr, flush=True))
+    result.update(env)
+    result["date"] = _dt.datetime.now().isoformat(timespec="seconds")
+    result["command"] = " ".join(sys.argv)
+    if args.out:
+        out = Path(args.out)
+    else:
+        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = REPO_ROOT / "reports" / f"stability-{case_slug(case.key)}-{stamp}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2, default=str))
+    print(stability_text(result))
+    print(f"written: {out}")
+    ok = result["in_process"].get("ok") and result["cross_process"].get("ok")
+    return 0 if ok else 1
+
+
+def register(subparsers) -> None:
+    import backends
+
+    s = subparsers.add_parser("stability", help="repeat one case in this process and in separate "
+                              "processes; print and write the spread of its timings")
+    s.add_argument("--scene", required=True, help="built-in name or mesh file")
+    s.add_argument("--structure", required=True, choices=backends.structure_names())
+    s.add_argument("--backend", required=True, choices=list(backends.BACKENDS))
+    s.add_argument("--resolution", default="64", help="64 (cubic) or RxRyRz")
+    s.add_argument("--ls-n", type=int, default=0)
+    s.add_argument("--ls-min-candidates", type=int, default=0)
+    s.add_argument("--size", default="128x128", help="image size WxH for camera rays")
+    s.add_argument("--rays", default="primary")
+    s.add_argument("--processes", type=int, default=3,
+                   help="runs in this process and, as many again, each in its own process")
+    s.add_argument("--repeats", type=int, default=5, help="timed launches per run")
+    s.add_argument("--warmup", type=int, default=1)
+    s.add_argument("--timeout", type=float, default=600.0, help="seconds per separate-process run")
+    s.add_argument("--out", metavar="FILE.json", help="default reports/stability-<case>-<date>.json")
+    s.set_defaults(func=cmd_stability)
