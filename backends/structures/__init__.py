@@ -3,11 +3,14 @@ n_tris, geometry, params) -> (buffers, uniforms, trace_spec, stats)."""
 from __future__ import annotations
 
 from . import grid, grid_ls
+from . import esvo, svo
 
 STRUCTURES = {
     "grid": grid,
     "grid-ls": grid_ls,
+    "svo": svo,
+    "esvo": esvo,
 }
 
 # Octrees need a cubic, power-of-two grid over the scene's bounding cube.
-CUBIC_STRUCTURES: set[str] = set()
+CUBIC_STRUCTURES: set[str] = {"svo", "esvo"}

@@ -16,6 +16,9 @@
 
 #if defined(HAS_rays) && defined(HAS_esvo_nodes)
 INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+#if defined(COUNT_WORK) && defined(CLOCK_START)
+    uint clock0 = CLOCK_START();
+#endif
     Hit best = no_hit(tmax);
     WRay wr = make_wray(o, d);
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
@@ -145,7 +148,9 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
             }
         }
     }
-#ifdef COUNT_WORK
+#if defined(COUNT_WORK) && defined(CLOCK_START)
+    V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
+#elif defined(COUNT_WORK)
     V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
 #endif
     return best;

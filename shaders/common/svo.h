@@ -80,7 +80,7 @@ INLINE void oct_flag_up_kernel(CTX_PARAM uint gid) {
 #endif
 
 #ifdef HAS_oct_counts
-// ---- Build 3: popcount per word, scanned on the host side of the Device interface ---------
+// ---- Build 3: popcount per word (then Device.exclusive_scan, on the device) ---------------
 INLINE void oct_popcount_kernel(CTX_PARAM uint gid) {
     V(oct_counts)[gid] = OCT_POPCOUNT(V(oct_bits)[gid]);
 }
@@ -203,6 +203,9 @@ INLINE float3 svo_to_grid(CTX_PARAM float3 p) {
 }
 
 INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+#if defined(COUNT_WORK) && defined(CLOCK_START)
+    uint clock0 = CLOCK_START();
+#endif
     Hit best = no_hit(tmax);
     WRay wr = make_wray(o, d);
     float3 og = svo_to_grid(CTX_ARG o);
@@ -279,7 +282,9 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
             if (left_root != 0) break;
         }
     }
-#ifdef COUNT_WORK
+#if defined(COUNT_WORK) && defined(CLOCK_START)
+    V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
+#elif defined(COUNT_WORK)
     V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
 #endif
     return best;

@@ -1,0 +1,194 @@
+"""`svo`: sparse voxel octree with a node pool of 8 child indices per node, leaves only on the
+last level, a candidate list per leaf, stack traversal (thesis 3.3.2, Algorithm 1).
+
+The build (shared with `esvo`, see `build_octree`) runs on the device from the voxel lists of
+`grid` (same conservative voxelization):
+
+1. flag: a bit pyramid, one bit per cell and level. The leaf level gets "voxel non-empty", each
+   level above "some child flagged" (the thesis' flagging step, level by level up to the root;
+   one work item per 32 cells, no atomics).
+2. count: popcount per word, exclusive prefix sum. The rank of a flagged bit is its node id
+   (levels in order, root = 0, Morton order inside a level), so the node and leaf counts of
+   every level are known before anything is allocated: the node buffers are allocated at
+   exactly their size (thesis 5.3 allocated the worst case: 3.25 GB for 7 MB of nodes).
+   The thesis (3.3.2) hands out child blocks with an atomic counter; the prefix sum gives the
+   same sizes and contiguous child blocks, but in a layout that does not depend on thread
+   timing (Listing 2 computes the same offsets serially, one thread per level).
+3. create: every internal node writes its children (svo: 8 uints; esvo: one descriptor).
+4. link leaves: every leaf gets (first, count) of its voxel's candidates in voxel_tris; the
+   dense voxel_offsets (4 bytes per voxel) is released after the build.
+
+Temporary buffers: the pyramid and its ranks, R^3/32 * 8/7 words each (1 bit per voxel).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..device import Device, DeviceBuffer, DeviceLimitError
+from ..kernels import GRID_UNIFORMS, RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from .base import BuildParams, GridGeometry
+from . import grid
+
+OCT_HEADERS = ("geometry.h", "scene.h", "svo.h")  # traversal
+BUILD_HEADERS = ("geometry.h", "svo.h")  # build kernels bind no scene buffers
+OCT_UNIFORMS = GRID_UNIFORMS + (Uniform("oct_depth", "uint"), Uniform("oct_level", "uint"))
+MAX_DEPTH = 10  # Morton codes of 3 * depth bits must fit a uint
+
+_LW = Buf("level_words", "uint", "r")
+FLAG_LEAVES = KernelSpec("oct_flag_leaves", BUILD_HEADERS, "oct_flag_leaves_kernel",
+                         (Buf("voxel_offsets", "uint", "r"), _LW, Buf("oct_bits", "uint", "rw")), OCT_UNIFORMS)
+FLAG_UP = KernelSpec("oct_flag_up", BUILD_HEADERS, "oct_flag_up_kernel",
+                     (_LW, Buf("oct_bits", "uint", "rw")), OCT_UNIFORMS)
+POPCOUNT = KernelSpec("oct_popcount", BUILD_HEADERS, "oct_popcount_kernel",
+                      (Buf("oct_bits", "uint", "r"), Buf("oct_counts", "uint", "w")), OCT_UNIFORMS)
+LEVEL_COUNTS = KernelSpec("oct_level_counts", BUILD_HEADERS, "oct_level_counts_kernel",
+                          (_LW, Buf("oct_ranks", "uint", "r"), Buf("oct_level_counts", "uint", "w")),
+                          OCT_UNIFORMS)
+LINK_LEAVES = KernelSpec("oct_leaves", BUILD_HEADERS, "oct_leaves_kernel",
+                         (_LW, Buf("oct_bits", "uint", "r"), Buf("oct_ranks", "uint", "r"),
+                          Buf("voxel_offsets", "uint", "r"), Buf("leaves", "uint", "w")), OCT_UNIFORMS)
+
+
+def create_spec(nodes_buffer: str) -> KernelSpec:
+    return KernelSpec(f"oct_create_{nodes_buffer}", BUILD_HEADERS, "oct_create_kernel",
+                      (_LW, Buf("oct_bits", "uint", "r"), Buf("oct_ranks", "uint", "r"),
+                       Buf(nodes_buffer, "uint", "w")), OCT_UNIFORMS)
+
+
+CREATE_SVO = create_spec("svo_nodes")
+CREATE_ESVO = create_spec("esvo_nodes")  # 32-bit descriptors of `esvo` (esvo.py, esvo.h)
+
+TRACE_SVO = KernelSpec(
+    "trace_svo", OCT_HEADERS, "trace_svo_kernel",
+    SCENE_BUFFERS + (Buf("svo_nodes", "uint", "r"), Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"))
+    + RAY_BUFFERS, GRID_UNIFORMS)
+
+# Per layout: nodes buffer name, bytes per internal node, create kernel.
+LAYOUTS = {"svo": ("svo_nodes", 32, CREATE_SVO), "esvo": ("esvo_nodes", 4, CREATE_ESVO)}
+
+ESVO_POINTER_LIMIT = 2 ** 24  # 24-bit child pointer of the esvo descriptor (Listing 2)
+
+
+def octree_depth(resolution) -> int:
+    """L for a cubic power-of-two resolution (R, R, R) = (2^L, ...); ValueError otherwise."""
+    res = tuple(int(r) for r in resolution)
+    r = res[0]
+    if len(res) != 3 or not res[0] == res[1] == res[2]:
+        raise ValueError(f"octrees need a cubic resolution (R, R, R), got {'x'.join(map(str, res))}")
+    if r < 2 or r & (r - 1):
+        raise ValueError(f"octree resolution must be a power of two >= 2, got {r}")
+    depth = r.bit_length() - 1
+    if depth > MAX_DEPTH:
+        raise ValueError(f"octree resolution {r} is over the supported 2^{MAX_DEPTH} "
+                         "(32-bit Morton codes)")
+    return depth
+
+
+def level_words(depth: int) -> np.ndarray:
+    """First word of each level in the bit pyramid (depth + 2 entries, the last is the total)."""
+    words = [max(1, 8 ** level // 32) for level in range(depth + 1)]
+    return np.concatenate([[0], np.cumsum(words)]).astype(np.uint32)
+
+
+def prepare(device: Device) -> None:
+    """Compile the build kernels (the trace kernel depends on the depth and compiles on its
+    first launch, before any timed one)."""
+    grid.prepare(device)
+    for spec in (FLAG_LEAVES, FLAG_UP, POPCOUNT, LEVEL_COUNTS, LINK_LEAVES, CREATE_SVO):
+        _compile(device, spec)
+
+
+def _compile(device: Device, spec: KernelSpec) -> None:
+    if device.backend == "glsl":
+        device.program(spec)
+    else:
+        device.kernel(spec)
+
+
+def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                 layout: str) -> tuple[dict[str, DeviceBuffer], dict]:
+    """Voxel lists -> bit pyramid -> ranks -> nodes + leaves (module docstring). Returns the
+    structure's buffers (nodes, leaves, voxel_tris) and stats."""
+    depth = octree_depth(geometry.resolution)
+    nodes_name, node_bytes, create = LAYOUTS[layout]
+    vox, vstats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    offsets, tris = vox["voxel_offsets"], vox["voxel_tris"]
+    temps = [offsets]  # released at the end, whatever happens
+    made: list[DeviceBuffer] = []  # released only if the build fails
+    try:
+        lw = level_words(depth)
+        total_words = int(lw[-1])
+        uniforms = dict(geometry.uniforms(), oct_depth=depth, oct_level=0)
+        lw_buf = device.upload("level_words", lw)
+        temps.append(lw_buf)
+        bits = device.alloc("oct_bits", 4 * total_words, zero=False)  # every word is written
+        temps.append(bits)
+        # 1. flag: leaf level from the voxel lists, then each level from the one below.
+        device.dispatch(FLAG_LEAVES, int(lw[depth + 1] - lw[depth]),
+                        {"voxel_offsets": offsets, "level_words": lw_buf, "oct_bits": bits}, uniforms)
+        for level in range(depth - 1, -1, -1):
+            device.dispatch(FLAG_UP, int(lw[level + 1] - lw[level]), {"level_words": lw_buf, "oct_bits": bits},
+                            dict(uniforms, oct_level=level))
+        # 2. count: ranks of the flagged bits, and the rank at each level's start.
+        counts = device.alloc("oct_counts", 4 * total_words, zero=False)
+        temps.append(counts)
+        device.dispatch(POPCOUNT, total_words, {"oct_bits": bits, "oct_counts": counts}, uniforms)
+        ranks, _ = device.exclusive_scan(counts, total_words, "oct_ranks")
+        temps.append(ranks)
+        temps.remove(counts)
+        device.release(counts)
+        starts_buf = device.alloc("oct_level_counts", 4 * (depth + 2), zero=False)
+        temps.append(starts_buf)
+        device.dispatch(LEVEL_COUNTS, depth + 2,
+                        {"level_words": lw_buf, "oct_ranks": ranks, "oct_level_counts": starts_buf}, uniforms)
+        starts = device.read(starts_buf, np.uint32, depth + 2).astype(np.int64)
+        per_level = np.diff(starts)  # nodes on levels 0..depth-1, leaves on level depth
+        n_nodes, n_leaves = int(starts[depth]), int(per_level[depth])
+        if layout == "esvo":
+            for what, n in (("internal nodes", n_nodes), ("leaves", n_leaves)):
+                if n > ESVO_POINTER_LIMIT:
+                    raise DeviceLimitError(
+                        f"esvo: {n} {what} at {geometry.resolution[0]}^3 overflow the 24-bit child "
+                        f"pointer of the 32-bit descriptor (limit {ESVO_POINTER_LIMIT}, thesis Listing 2)")
+        # 3. create nodes and 4. link leaves, into buffers of exactly the counted size.
+        nodes = device.alloc(nodes_name, node_bytes * max(n_nodes, 1))  # zero: an empty scene's root
+        made.append(nodes)
+        nodes.used_bytes = node_bytes * n_nodes
+        leaves = device.alloc("leaves", 8 * max(n_leaves, 1), zero=False)
+        made.append(leaves)
+        leaves.used_bytes = 8 * n_leaves
+        device.dispatch(create, int(lw[depth]),
+                        {"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks, nodes_name: nodes},
+                        uniforms)
+        device.dispatch(LINK_LEAVES, int(lw[depth + 1] - lw[depth]),
+                        {"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks,
+                         "voxel_offsets": offsets, "leaves": leaves}, uniforms)
+        device.finish()
+    except BaseException:
+        for b in made + [tris]:
+            device.release(b)
+        raise
+    finally:
+        temp_bytes = sum(b.nbytes for b in temps)
+        for b in temps:
+            device.release(b)
+    tris.used_bytes = 4 * vstats["references"]
+    voxels = geometry.voxel_count
+    stats = dict(vstats)
+    stats.update({
+        "depth": depth,
+        "nodes_per_level": [int(n) for n in per_level[:depth]],
+        "nodes": n_nodes,
+        "leaves": n_leaves,
+        "empty_fraction": 1.0 - n_leaves / voxels,
+        "temp_bytes": int(temp_bytes),
+    })
+    return {nodes_name: nodes, "leaves": leaves, "voxel_tris": tris}, stats
+
+
+def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+          params: BuildParams):
+    octree_depth(params.resolution)  # ValueError before any work
+    buffers, stats = build_octree(device, scene_buffers, n_tris, geometry, "svo")
+    spec = TRACE_SVO.with_defines(OCT_DEPTH=stats["depth"])
+    return buffers, geometry.uniforms(), spec, stats
