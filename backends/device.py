@@ -92,6 +92,12 @@ class Device(abc.ABC):
     limit_name = "max buffer size"
 
 
+def check_item_count(spec, n_items: int) -> None:
+    """Kernels index items with a 32-bit gid and get n_items as a uint uniform."""
+    if n_items > 0xFFFFFFFF:
+        raise DeviceLimitError(f"{spec.name}: {n_items} items overflow the 32-bit item index (gid, n_items)")
+
+
 def as_float4(v, w: float = 0.0) -> tuple[float, float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]), float(w))
 

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing
+from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count
 from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
@@ -144,6 +144,7 @@ class GLSLDevice(Device):
         return prog
 
     def _bind(self, prog, spec, n_items, buffers, uniforms):
+        check_item_count(spec, n_items)
         for binding, b in enumerate(spec.buffers):
             if b.name not in buffers:
                 raise KeyError(f"{spec.name}: buffer '{b.name}' not given")
@@ -271,6 +272,13 @@ class GLSLDevice(Device):
     def rasterize_triangles(self, spec, n_tris, buffers, uniforms, viewport: int):
         """Draw n_tris points through the raster voxelizer into an attachment-less-sized
         viewport of viewport x viewport pixels (one pixel = one voxel column)."""
+        # Checked before any GL call: an incomplete framebuffer leaves a sticky GL error that
+        # would fail the next, unrelated call on this context (found by tests/test_limits.py).
+        limit = min(int(self.ctx.info["GL_MAX_RENDERBUFFER_SIZE"]), *map(int, self.ctx.info["GL_MAX_VIEWPORT_DIMS"]))
+        if viewport > limit:
+            raise DeviceLimitError(
+                f"{spec.name}: raster voxelization needs a {viewport}x{viewport} viewport, over the "
+                f"driver's {limit} (GL_MAX_VIEWPORT_DIMS / GL_MAX_RENDERBUFFER_SIZE)")
         prog = self.raster_program(spec)
         self._bind(prog, spec, n_tris, buffers, uniforms)
         # llvmpipe accepts a framebuffer without attachments, moderngl wants one: a 1-byte

@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing
+from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count
 from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
 
 CL_TYPES = {"float": "float", "uint": "uint", "int": "int", "float4": "float4", "uint4": "uint4",
@@ -173,6 +173,7 @@ class OpenCLDevice(Device):
         return knl
 
     def _args(self, spec, n_items, buffers, uniforms):
+        check_item_count(spec, n_items)
         args = []
         for b in spec.buffers:
             if b.name not in buffers:

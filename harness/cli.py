@@ -69,6 +69,20 @@ def _write_run_json(out: Path, scenario, argv) -> None:
     write_run_info(out, info)
 
 
+def _check_inputs(scenario) -> None:
+    """Load every scene file and .npz ray file of the scenario once, before any case runs: a
+    missing or corrupt file is a one-line error (exit 2), not a run of failed cases."""
+    from .rays import load_rays_file
+    from .scenes import builtin_names, load_scene
+
+    for spec in dict.fromkeys(c.scene for c in scenario.cases):
+        if spec not in builtin_names():
+            load_scene(spec)
+    for spec in dict.fromkeys(c.rays for c in scenario.cases):
+        if spec.lower().endswith(".npz"):
+            load_rays_file(spec)
+
+
 def cmd_run(args) -> int:
     from .runner import run_scenario, summary_table
 
@@ -78,6 +92,7 @@ def cmd_run(args) -> int:
     if args.memory_budget:
         import dataclasses
         scenario.settings = dataclasses.replace(scenario.settings, memory_budget_mb=args.memory_budget)
+    _check_inputs(scenario)
     out = Path(args.out) if args.out else default_out_dir(scenario.name)
     out.mkdir(parents=True, exist_ok=True)
     _write_run_json(out, scenario, sys.argv)

@@ -131,6 +131,15 @@ def load_rays_file(path: str) -> RaySet:
 RAY_SETS: dict[str, Callable[..., RaySet]] = {"primary": primary_rays}
 
 
+def _adversarial(scene: Scene, width: int, height: int, camera: Camera | None = None) -> RaySet:
+    from harness.adversarial import make_adversarial  # imports this module: keep it lazy
+
+    return make_adversarial(scene, width, height, camera)
+
+
+RAY_SETS["adversarial"] = _adversarial
+
+
 def make_rays(name_or_path: str, scene: Scene, width: int, height: int,
               camera: Camera | None = None) -> RaySet:
     """A registered ray set by name, or a `.npz` ray file."""

@@ -36,8 +36,14 @@ def read_records(path: Path) -> list[dict]:
 def append_record(path: Path, record: dict) -> None:
     # One write + fsync per record: a kill -9 loses at most the case in flight.
     line = json.dumps(record, default=_json_default) + "\n"
-    with open(path, "a") as f:
-        f.write(line)
+    with open(path, "a+b") as f:
+        # A run killed mid-write leaves a last line without its newline: start a new line, or
+        # this record would be glued to the fragment and lost with it.
+        if f.tell() > 0:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                line = "\n" + line
+        f.write(line.encode())
         f.flush()
         os.fsync(f.fileno())
 
@@ -52,9 +58,36 @@ def _json_default(o):
     return str(o)
 
 
+# Reasons that mean "an allocation failed": under --memory-budget they name the budget.
+_ALLOCATION_FAILURES = ("MemoryError", "OUT_OF_", "ALLOCATION_FAILURE", "GL_OUT_OF_MEMORY",
+                        "Cannot allocate", "std::bad_alloc", "allocating buffer")
+
+
+def budget_text(settings: RunSettings) -> str:
+    return f"host memory budget of {settings.memory_budget_mb:g} MiB (--memory-budget, RLIMIT_AS)"
+
+
+def _test_fault(case: Case) -> None:
+    """Test-only fault injection, like LSBENCH_PLANT_DEFECT: env LSBENCH_FAULT=crash|hang, or
+    crash:TEXT / hang:TEXT to hit only cases whose key contains TEXT. `crash` kills the worker
+    with SIGKILL (as a driver crash or the OOM killer would), `hang` sleeps past any timeout.
+    tests/test_limits.py uses it to show that the run records the case and goes on."""
+    fault = os.environ.get("LSBENCH_FAULT", "")
+    if not fault:
+        return
+    kind, _, where = fault.partition(":")
+    if where and where not in case.key:
+        return
+    if kind == "crash":
+        os.kill(os.getpid(), signal.SIGKILL)
+    elif kind == "hang":
+        time.sleep(10**6)
+
+
 def _worker(conn, case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None) -> None:
     # The parent handles Ctrl-C; a worker just dies with it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _test_fault(case)
     if settings.memory_budget_mb:
         import resource
 
@@ -63,9 +96,13 @@ def _worker(conn, case: Case, settings: RunSettings, env: dict, heatmap_dir: str
     try:
         rec = execute(case, settings, env, heatmap_dir=heatmap_dir)
     except MemoryError:
-        rec = failed_record(case, f"host memory budget of {settings.memory_budget_mb} MiB exceeded", env)
+        rec = failed_record(case, f"{budget_text(settings)} exceeded (MemoryError)", env)
     except Exception as exc:  # bad scene or rays: the case fails with the one-line reason
         rec = failed_record(case, f"{type(exc).__name__}: {exc}".splitlines()[0], env)
+    if settings.memory_budget_mb and rec.get("status") != "ok" \
+            and any(s in str(rec.get("reason")) for s in _ALLOCATION_FAILURES) \
+            and "memory budget" not in str(rec.get("reason")):
+        rec["reason"] = f"{rec['reason']} (under the {budget_text(settings)})"
     conn.send(rec)
     conn.close()
 
@@ -88,6 +125,10 @@ def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir:
         if not proc.is_alive() and not parent.poll(0):
             break
     if rec is None:
+        if proc.is_alive() and time.monotonic() < deadline:
+            # the pipe closed before the deadline: the worker is dying (abort, core dump), give
+            # it a moment so a crash is not reported as a timeout
+            proc.join(min(10.0, max(0.0, deadline - time.monotonic())))
         if proc.is_alive():
             proc.kill()
             proc.join(5)
@@ -95,7 +136,11 @@ def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir:
         proc.join(5)
         code = proc.exitcode
         what = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit code {code}"
-        return failed_record(case, f"worker crashed ({what}) before reporting", env)
+        reason = f"worker crashed ({what}) before reporting"
+        if settings.memory_budget_mb:
+            # drivers abort() or segfault when malloc fails under RLIMIT_AS instead of reporting it
+            reason += f"; the {budget_text(settings)} was in force: likely exceeded"
+        return failed_record(case, reason, env)
     proc.join(10)
     if proc.is_alive():
         proc.kill()

@@ -82,7 +82,8 @@ def _load_file(path: Path) -> Scene:
 
 def _checked_scene(name: str, vertices, faces, source: str, camera: Camera | None = None) -> Scene:
     """Validate and convert to the Scene contract (float32 (V,3), uint32 (F,3))."""
-    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3).astype(np.float32)
+    with np.errstate(over="ignore"):  # beyond float32 range -> Inf, reported below in one line
+        vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3).astype(np.float32)
     faces = np.asarray(faces).reshape(-1, 3)
     if faces.shape[0] == 0:
         raise SceneError(f"{source}: scene has no triangles")

@@ -6,9 +6,14 @@ INLINE int icomp3(int3 v, int i) { return i == 0 ? v.x : (i == 1 ? v.y : v.z); }
 
 // 1/x that maps +0 and -0 to +/-infinity by sign bit, so axis-parallel rays never divide by
 // zero and the slab test below sees an infinite slope instead of NaN.
+// A non-zero |x| below ~2.9e-39 (a denormal direction component) would give 1/x = inf, and
+// a ray starting exactly on a cell boundary then computes 0 * inf = NaN for its next boundary
+// (svo lost such rays, tests/test_properties.py): the largest finite float keeps it ordered.
 INLINE float safe_rcp(float x) {
     if (x == 0.0f) return (as_uint(x) & 0x80000000u) != 0u ? -INF_F : INF_F;
-    return 1.0f / x;
+    float r = 1.0f / x;
+    if (fabs(r) > 3.4028235e38f) return x < 0.0f ? -3.4028235e38f : 3.4028235e38f;
+    return r;
 }
 
 // Ray/box slab test (Kay & Kajiya). Returns (t_enter, t_exit); the box is missed if t_enter > t_exit.
@@ -41,7 +46,14 @@ INLINE float2 ray_box(float3 o, float3 inv_d, float3 d, float3 lo, float3 hi) {
 // The per-ray part (axis permutation and shear) is computed once per ray.
 STRUCT(WRay) { float3 o; int kx; int ky; int kz; float sx; float sy; float sz; };
 
-INLINE WRay make_wray(float3 o, float3 d) {
+// Direction components below 1e-30 (denormals included) count as signed zeros here: a ray in
+// a triangle's plane whose off-plane component is 1.4e-45 otherwise gets tiny non-zero edge
+// values and a "hit" at a meaningless t (tests/test_bad_input.py, flat scene). The ray moves
+// < 1e-30 * t off its line, far below float32 resolution; GPUs that flush denormals agree.
+INLINE float flush_tiny(float x) { return fabs(x) < 1e-30f ? x * 0.0f : x; }
+
+INLINE WRay make_wray(float3 o, float3 d0) {
+    float3 d = make_float3(flush_tiny(d0.x), flush_tiny(d0.y), flush_tiny(d0.z));
     WRay r;
     r.o = o;
     float ax = fabs(d.x), ay = fabs(d.y), az = fabs(d.z);
