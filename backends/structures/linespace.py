@@ -27,6 +27,7 @@ DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never trunca
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,7 +41,7 @@ LS_HEADERS = ("geometry.h", "scene.h", "grid.h", "linespace.h")
 LS_HEADERS_NO_SCENE = ("geometry.h", "grid.h", "linespace.h")
 LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "uint"),
                                Uniform("ls_eps", "float"))
-LS_MAX_PLANES = 10  # must match shaders/common/linespace.h
+LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
 LS_EPS = 1e-3
@@ -64,6 +65,25 @@ LS_CHECK = KernelSpec(
     (Buf("ls_check_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
 
 BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK)
+
+# The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
+# get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
+# equivalent separating-axis test. Both are conservative with the same margin and give the same
+# candidates up to that margin; each backend uses the one its driver runs faster: llvmpipe spends
+# 10x more time on the clipper's variable-indexed polygon arrays, PoCL runs the clipper about 2x
+# faster than the 57-axis SAT. Override with LSBENCH_LS_TEST=clip|sat.
+EXACT_TEST = {"glsl": "sat", "opencl": "clip"}
+
+
+def exact_test(device: Device) -> str:
+    choice = os.environ.get("LSBENCH_LS_TEST") or EXACT_TEST.get(device.backend, "sat")
+    if choice not in ("clip", "sat"):
+        raise ValueError(f"LSBENCH_LS_TEST must be 'clip' or 'sat', got {choice!r}")
+    return choice
+
+
+def _with_test(device: Device, spec: KernelSpec) -> KernelSpec:
+    return spec.with_defines(LS_CLIP_SH=1) if exact_test(device) == "clip" else spec
 
 
 def shafts_per_cell(n: int) -> int:
@@ -94,6 +114,7 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
 
 def prepare(device: Device) -> None:
     for spec in BUILD_SPECS:
+        spec = _with_test(device, spec)
         device.program(spec) if device.backend == "glsl" else device.kernel(spec)
 
 
@@ -115,41 +136,57 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             f"{cells.count} Line Spaces x {per_cell} shafts = {n_shafts} shafts overflow 32-bit "
             "shaft indices (uint, 2^32 - 1)")
     u = uniforms(geometry, n)
-    planes = device.alloc("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
-    device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
-    stats_buf = device.alloc("ls_stats", 16)
-    cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes,
-                     ls_cell_ranges=cells.ranges, ls_cell_tris=cells.tris)
-    counts = device.alloc("ls_shaft_counts", 4 * max(n_shafts, 1))
-    device.dispatch(LS_COUNT, n_shafts, dict(cell_bufs, ls_shaft_counts=counts, ls_stats=stats_buf), u)
-    offsets, total = device.exclusive_scan(counts, n_shafts, "ls_shaft_offsets")
-    device.release(counts)
-    # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look for
-    # the wrap (a decreasing offset) on the device before trusting `total`.
-    if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
-        flag = device.alloc("ls_check_flag", 4)
-        device.dispatch(LS_CHECK, n_shafts, {"ls_check_offsets": offsets, "ls_check_flag": flag}, u)
-        wrapped = int(device.read(flag, np.uint32, 1)[0])
-        device.release(flag)
-        if wrapped or total >= UINT32_MAX:
-            device.release(offsets)
-            device.release(planes)
-            device.release(stats_buf)
-            raise DeviceLimitError(
-                f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
-                "references: over the 32-bit candidate offsets")
+    if n_shafts == 0:  # no cell gets a Line Space (e.g. ls_min_candidates above every list)
+        offsets = device.alloc("ls_shaft_offsets", 4)
+        tris = device.alloc("ls_shaft_tris", 4)
+        tris.used_bytes = 0
+        stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
+                 "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
+                 "ls_exact_test": exact_test(device)}
+        return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)
+    # Fail before the long count pass when the offsets alone cannot fit.
+    device.check_size("ls_shaft_offsets", 4 * (n_shafts + 1))
+    temps: list[DeviceBuffer] = []  # released however the build ends
+    kept: list[DeviceBuffer] = []  # released only if it fails
     try:
+        planes = device.alloc("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
+        temps.append(planes)
+        device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
+        stats_buf = device.alloc("ls_stats", 16)
+        temps.append(stats_buf)
+        cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes,
+                         ls_cell_ranges=cells.ranges, ls_cell_tris=cells.tris)
+        counts = device.alloc("ls_shaft_counts", 4 * n_shafts)
+        temps.append(counts)
+        device.dispatch(_with_test(device, LS_COUNT), n_shafts,
+                        dict(cell_bufs, ls_shaft_counts=counts, ls_stats=stats_buf), u)
+        offsets, total = device.exclusive_scan(counts, n_shafts, "ls_shaft_offsets")
+        kept.append(offsets)
+        temps.remove(counts)
+        device.release(counts)
+        # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
+        # for the wrap (a decreasing offset) on the device before trusting `total`.
+        if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
+            flag = device.alloc("ls_check_flag", 4)
+            temps.append(flag)
+            device.dispatch(LS_CHECK, n_shafts, {"ls_check_offsets": offsets, "ls_check_flag": flag}, u)
+            if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
+                raise DeviceLimitError(
+                    f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
+                    "references: over the 32-bit candidate offsets")
         tris = device.alloc("ls_shaft_tris", 4 * max(total, 1), zero=False)
-    except DeviceLimitError:
-        device.release(offsets)
-        device.release(planes)
-        device.release(stats_buf)
+        kept.append(tris)
+        device.dispatch(_with_test(device, LS_FILL), n_shafts,
+                        dict(cell_bufs, ls_shaft_offsets=offsets, ls_shaft_tris=tris), u)
+        non_empty = int(device.read(stats_buf, np.uint32, 1)[0])
+    except Exception:
+        for b in kept:
+            device.release(b)
         raise
-    device.dispatch(LS_FILL, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, ls_shaft_tris=tris), u)
+    finally:
+        for b in temps:
+            device.release(b)
     device.finish()
-    non_empty = int(device.read(stats_buf, np.uint32, 1)[0])
-    device.release(planes)
-    device.release(stats_buf)
     tris.used_bytes = 4 * total
     stats = {
         "ls_n": n,
@@ -159,5 +196,6 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "non_empty_shafts": non_empty,
         "candidate_references": total,
         "ls_bytes": offsets.nbytes + tris.nbytes,
+        "ls_exact_test": exact_test(device),
     }
     return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)

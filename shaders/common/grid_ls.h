@@ -41,6 +41,7 @@ INLINE void gls_cells_kernel(CTX_PARAM uint vox) {
 // 12-13); it is computed only when a Line Space needs it, so empty voxels cost nothing extra.
 // A hit counts only inside the voxel (t <= exit + tolerance), as in the plain grid.
 INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
+    uint clock0 = CLOCK_START();
     Hit best = no_hit(tmax);
     float3 og = to_grid(CTX_ARG o);
     float3 dg = d * V(grid_inv_voxel).xyz;
@@ -134,7 +135,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
         }
     }
 #ifdef COUNT_WORK
-    V(work)[ray] = make_uint4(iterations, tests, lookups, 0u);
+    V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
     return best;
 }

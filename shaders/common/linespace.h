@@ -20,7 +20,7 @@
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
 
-#define LS_MAX_PLANES 10  // a hull of two face patches has at most 8 facets (checked for N <= 4)
+#define LS_MAX_PLANES 8  // a hull of two face patches has at most 8 facets (brute force, N <= 5)
 #define LS_MAX_POLY 16    // 3 triangle corners + one vertex per clipping plane, with room
 
 // Block of the unordered face pair (a, b), a < b: row a of faceToBlockMap.
@@ -62,6 +62,24 @@ INLINE float3 ls_patch_corner(uint n, int face, uint p, int k) {
     return make_float3(u, v, side);
 }
 
+// Faces and patches of a shaft id (the inverse of ls_shaft_id for fa < fb).
+STRUCT(LsShaft) { int fa; int fb; uint pa; uint pb; };
+
+INLINE LsShaft ls_decode(uint n, uint shaft) {
+    uint n2 = n * n;
+    uint block = shaft / (n2 * n2);
+    uint rest = shaft % (n2 * n2);
+    LsShaft sh;
+    sh.fa = 0;
+    sh.fb = 1;
+    for (int a = 0; a < 6; ++a)
+        for (int b = a + 1; b < 6; ++b)
+            if (ls_block(a, b) == block) { sh.fa = a; sh.fb = b; }
+    sh.pa = rest / n2;
+    sh.pb = rest % n2;
+    return sh;
+}
+
 // Plane (n.xyz, w) of a shaft facet: a point p is outside by dot(n, p) + w (unit n).
 INLINE float ls_plane_dist(float4 pl, float3 p) {
     return dot(pl.xyz, p) + pl.w;
@@ -77,19 +95,11 @@ INLINE float ls_plane_dist(float4 pl, float3 p) {
 // (0, 0, 0, -1): every point is inside them.
 INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
     uint n = V(ls_n);
-    uint n2 = n * n;
-    uint n4 = n2 * n2;
-    uint block = shaft / n4;
-    uint rest = shaft % n4;
-    int fa = 0;
-    int fb = 1;
-    for (int a = 0; a < 6; ++a)
-        for (int b = a + 1; b < 6; ++b)
-            if (ls_block(a, b) == block) { fa = a; fb = b; }
+    LsShaft sh = ls_decode(n, shaft);
     float3 P[8];
     for (int k = 0; k < 4; ++k) {
-        P[k] = ls_patch_corner(n, fa, rest / n2, k);
-        P[4 + k] = ls_patch_corner(n, fb, rest % n2, k);
+        P[k] = ls_patch_corner(n, sh.fa, sh.pa, k);
+        P[4 + k] = ls_patch_corner(n, sh.fb, sh.pb, k);
     }
     float4 planes[LS_MAX_PLANES];
     int count = 0;
@@ -132,22 +142,22 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
-// Cheap outcomes first: all corners outside one plane -> no; all corners inside every plane ->
-// yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3) and see
-// whether anything is left.
-INLINE int ls_tri_meets_shaft(CTX_PARAM uint shaft, float3 a, float3 b, float3 c) {
-    float eps = V(ls_eps);
-    float4 pl[LS_MAX_PLANES];
-    int all_inside = 1;
-    for (int q = 0; q < LS_MAX_PLANES; ++q) {
-        pl[q] = V(ls_planes)[shaft * U32(LS_MAX_PLANES) + U32(q)];
-        float da = ls_plane_dist(pl[q], a) - eps;
-        float db = ls_plane_dist(pl[q], b) - eps;
-        float dc = ls_plane_dist(pl[q], c) - eps;
-        if (da > 0.0f && db > 0.0f && dc > 0.0f) return 0;
-        if (da > 0.0f || db > 0.0f || dc > 0.0f) all_inside = 0;
-    }
-    if (all_inside != 0) return 1;
+// Cheap outcomes first (ls_quick): all corners outside one plane -> no; all corners inside every
+// plane -> yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3)
+// and see whether anything is left (LS_CLIP_SH), or, by default, the equivalent exact separating-
+// axis test ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
+// arrays, which llvmpipe handles slowly.
+#define LS_OUT(pl, p) (ls_plane_dist(pl, p) - eps > 0.0f)
+// 0: separated by this plane, 1: all corners inside it, 2: straddles it.
+INLINE int ls_side(float4 pl, float3 a, float3 b, float3 c, float eps) {
+    int oa = LS_OUT(pl, a) ? 1 : 0;
+    int ob = LS_OUT(pl, b) ? 1 : 0;
+    int oc = LS_OUT(pl, c) ? 1 : 0;
+    int outs = oa + ob + oc;
+    return outs == 3 ? 0 : (outs == 0 ? 1 : 2);
+}
+
+INLINE int ls_clip_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3 c, float eps) {
     float3 poly[LS_MAX_POLY];
     float3 next[LS_MAX_POLY];
     poly[0] = a;
@@ -155,12 +165,13 @@ INLINE int ls_tri_meets_shaft(CTX_PARAM uint shaft, float3 a, float3 b, float3 c
     poly[2] = c;
     int n = 3;
     for (int q = 0; q < LS_MAX_PLANES; ++q) {
+        float4 pl = V(ls_planes)[shaft * U32(LS_MAX_PLANES) + U32(q)];
         int m = 0;
         for (int i = 0; i < n; ++i) {
             float3 cur = poly[i];
             float3 nxt = poly[(i + 1) % n];
-            float dc = ls_plane_dist(pl[q], cur) - eps;
-            float dn = ls_plane_dist(pl[q], nxt) - eps;
+            float dc = ls_plane_dist(pl, cur) - eps;
+            float dn = ls_plane_dist(pl, nxt) - eps;
             if (dc <= 0.0f && m < LS_MAX_POLY) { next[m] = cur; m += 1; }
             if ((dc <= 0.0f) != (dn <= 0.0f) && m < LS_MAX_POLY) {
                 next[m] = cur + (nxt - cur) * (dc / (dc - dn));
@@ -174,6 +185,52 @@ INLINE int ls_tri_meets_shaft(CTX_PARAM uint shaft, float3 a, float3 b, float3 c
     return 1;
 }
 
+// Separating-axis test of the triangle against the shaft volume (convex hull of the corners
+// P0..P3 of one patch and Q0..Q3 of the other) for the triangles the facet planes leave undecided.
+// Exact like clipping the triangle against the shaft (Sutherland-Hodgman), but without the
+// variable-indexed polygon arrays that make llvmpipe 10x slower. Axes: the triangle normal and
+// the cross products of the triangle edges with every hull edge direction (the hull's edges are
+// patch sides, i.e. coordinate axes, or join a P corner to a Q corner: a superset never separates
+// wrongly); the facet normals were tested before. Margin eps * |axis|: conservative, scale-free.
+INLINE int ls_sep(float3 ax, float3 a, float3 b, float3 c, float3 P0, float3 P1, float3 P2, float3 P3,
+                  float3 Q0, float3 Q1, float3 Q2, float3 Q3, float eps) {
+    float ta = dot(ax, a), tb = dot(ax, b), tc = dot(ax, c);
+    float tmin = min(ta, min(tb, tc)), tmax = max(ta, max(tb, tc));
+    float h0 = dot(ax, P0), h1 = dot(ax, P1), h2 = dot(ax, P2), h3 = dot(ax, P3);
+    float h4 = dot(ax, Q0), h5 = dot(ax, Q1), h6 = dot(ax, Q2), h7 = dot(ax, Q3);
+    float hmin = min(min(min(h0, h1), min(h2, h3)), min(min(h4, h5), min(h6, h7)));
+    float hmax = max(max(max(h0, h1), max(h2, h3)), max(max(h4, h5), max(h6, h7)));
+    float m = eps * length(ax);
+    return (tmin > hmax + m || tmax < hmin - m) ? 1 : 0;
+}
+
+INLINE int ls_sep_edges(float3 e, float3 a, float3 b, float3 c, float3 P0, float3 P1, float3 P2, float3 P3,
+                        float3 Q0, float3 Q1, float3 Q2, float3 Q3, float eps) {
+    if (ls_sep(cross(e, make_float3(1.0f, 0.0f, 0.0f)), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+    if (ls_sep(cross(e, make_float3(0.0f, 1.0f, 0.0f)), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+    if (ls_sep(cross(e, make_float3(0.0f, 0.0f, 1.0f)), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+    for (int i = 0; i < 4; ++i) {
+        float3 p = i == 0 ? P0 : (i == 1 ? P1 : (i == 2 ? P2 : P3));
+        if (ls_sep(cross(e, Q0 - p), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+        if (ls_sep(cross(e, Q1 - p), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+        if (ls_sep(cross(e, Q2 - p), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+        if (ls_sep(cross(e, Q3 - p), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 1;
+    }
+    return 0;
+}
+
+INLINE int ls_sat_meets(uint n, LsShaft sh, float3 a, float3 b, float3 c, float eps) {
+    float3 P0 = ls_patch_corner(n, sh.fa, sh.pa, 0), P1 = ls_patch_corner(n, sh.fa, sh.pa, 1);
+    float3 P2 = ls_patch_corner(n, sh.fa, sh.pa, 2), P3 = ls_patch_corner(n, sh.fa, sh.pa, 3);
+    float3 Q0 = ls_patch_corner(n, sh.fb, sh.pb, 0), Q1 = ls_patch_corner(n, sh.fb, sh.pb, 1);
+    float3 Q2 = ls_patch_corner(n, sh.fb, sh.pb, 2), Q3 = ls_patch_corner(n, sh.fb, sh.pb, 3);
+    if (ls_sep(cross(b - a, c - a), a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 0;
+    if (ls_sep_edges(b - a, a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 0;
+    if (ls_sep_edges(c - b, a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 0;
+    if (ls_sep_edges(a - c, a, b, c, P0, P1, P2, P3, Q0, Q1, Q2, Q3, eps) != 0) return 0;
+    return 1;
+}
+
 // ---- Build: count pass (LS_FILL undefined) and fill pass, one work item per (cell, shaft) ----
 // Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
 // cell into ls_cell_tris). A work item walks its cell's candidates in list order, so the fill
@@ -182,11 +239,22 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint cell = gid / shafts;
     uint shaft = gid % shafts;
+    float eps = V(ls_eps);
     float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
     float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
     float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
     uint begin = V(ls_cell_ranges)[2u * cell];
     uint end = V(ls_cell_ranges)[2u * cell + 1u];
+    LsShaft sh = ls_decode(V(ls_n), shaft);
+    uint pb = shaft * U32(LS_MAX_PLANES);
+    float4 p0 = V(ls_planes)[pb];
+    float4 p1 = V(ls_planes)[pb + 1u];
+    float4 p2 = V(ls_planes)[pb + 2u];
+    float4 p3 = V(ls_planes)[pb + 3u];
+    float4 p4 = V(ls_planes)[pb + 4u];
+    float4 p5 = V(ls_planes)[pb + 5u];
+    float4 p6 = V(ls_planes)[pb + 6u];
+    float4 p7 = V(ls_planes)[pb + 7u];
 #ifdef LS_FILL
     uint first = V(ls_shaft_offsets)[gid];
 #endif
@@ -197,7 +265,19 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         float3 a = (to_grid(CTX_ARG t.a) - lo) * inv;
         float3 b = (to_grid(CTX_ARG t.b) - lo) * inv;
         float3 c = (to_grid(CTX_ARG t.c) - lo) * inv;
-        if (ls_tri_meets_shaft(CTX_ARG shaft, a, b, c) != 0) {
+        int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
+        int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
+        int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);
+        int s6 = ls_side(p6, a, b, c, eps), s7 = ls_side(p7, a, b, c, eps);
+        int meets = 0;
+        if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) meets = 0;
+        else if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) meets = 1;
+#ifdef LS_CLIP_SH
+        else meets = ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // reference: Sutherland-Hodgman
+#else
+        else meets = ls_sat_meets(V(ls_n), sh, a, b, c, eps);
+#endif
+        if (meets != 0) {
 #ifdef LS_FILL
             V(ls_shaft_tris)[first + count] = tri;
 #endif

@@ -1,0 +1,264 @@
+"""`grid-ls` and the Line Space build on both backends.
+
+- Shaft candidate lists are conservative: every triangle that a segment between two points of a
+  shaft's patches meets is a candidate of that shaft (numpy, segments sampled independently of
+  the device's facet planes), for N = 1, 2, 3 and both exact tests (clipping, SAT).
+- Hits agree with Embree, and with `grid` up to ties; ls_min_candidates keeps the hits and saves
+  memory; the 32-bit and buffer-size limits raise DeviceLimitError instead of truncating.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import backends
+from backends import BuildParams, DeviceLimitError
+from backends.structures import linespace
+from harness.groundtruth import embree_closest
+from harness.rays import RaySet, primary_rays
+from harness.scene import Camera, Scene
+from harness.scenes import load_scene
+from harness.verify import compare
+
+from conftest import scene_path
+
+# Sponza (Crytek, cm): an interior view down the atrium (all rays hit).
+SPONZA_CAMERA = Camera(eye=(1300.0, 300.0, -50.0), target=(-1000.0, 450.0, 0.0), up=(0, 1, 0), fov_deg=60.0)
+FACE_PAIRS = [(a, b) for a in range(6) for b in range(a + 1, 6)]  # block order of Listing 1
+
+
+def random_scene(n_tris=40, size=0.3, seed=3) -> Scene:
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1, 1, (n_tris, 1, 3))
+    v = (centres + rng.normal(0, size, (n_tris, 3, 3))).reshape(-1, 3).astype(np.float32)
+    return Scene("random", v, np.arange(3 * n_tris, dtype=np.uint32).reshape(-1, 3), "test")
+
+
+def random_rays(scene: Scene, n=4000, seed=5) -> RaySet:
+    rng = np.random.default_rng(seed)
+    lo, hi = scene.bounds
+    o = rng.uniform(lo - 0.5, hi + 0.5, (n, 3)).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    return RaySet("random", o, (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32))
+
+
+def accuracy(scene, hits, ref_p, ref_t):
+    lo, hi = scene.bounds
+    return compare(hits.prim_ids, hits.distances, ref_p, ref_t, scene_extent=float(np.linalg.norm(hi - lo)))
+
+
+# --- numpy reference of the shaft geometry ----------------------------------------------------
+def patch_points(face: int, patch: int, n: int, r: np.ndarray) -> np.ndarray:
+    """Cell-local points of a patch; r (K, 2) in [0, 1] are positions inside the patch."""
+    axis, side = divmod(face, 2)
+    ui, vi = patch % n, patch // n
+    p = np.empty((len(r), 3))
+    p[:, axis] = side
+    p[:, (axis + 1) % 3] = (ui + r[:, 0]) / n
+    p[:, (axis + 2) % 3] = (vi + r[:, 1]) / n
+    return p
+
+
+def shaft_segments(n: int, samples: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(15 N^4, K, 3) start and end points per shaft id (Listing 1 order); corners and edges of the
+    patches are among the samples, since rays along the shaft's boundary are the hard cases."""
+    edge = np.array([[0, 0], [1, 1], [0, 1], [1, 0], [0.5, 0], [1, 0.5]])
+    starts, ends = [], []
+    for a, b in FACE_PAIRS:
+        for pa in range(n * n):
+            for pb in range(n * n):
+                ra = np.vstack([edge, rng.uniform(0, 1, (samples - len(edge), 2))])
+                rb = np.vstack([edge[::-1], rng.uniform(0, 1, (samples - len(edge), 2))])
+                starts.append(patch_points(a, pa, n, ra))
+                ends.append(patch_points(b, pb, n, rb))
+    return np.array(starts), np.array(ends)
+
+
+def segments_hit(p, q, tris) -> np.ndarray:
+    """(M, T) bool: segment p[m]->q[m] meets triangle t (float64 Moeller-Trumbore, t in [0, 1])."""
+    d = (q - p)[:, None, :]
+    v0, v1, v2 = tris[None, :, 0], tris[None, :, 1], tris[None, :, 2]
+    e1, e2 = v1 - v0, v2 - v0
+    h = np.cross(d, e2)
+    det = np.einsum("mtk,mtk->mt", e1 * np.ones_like(h), h)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = 1.0 / det
+        s = p[:, None, :] - v0
+        u = f * np.einsum("mtk,mtk->mt", s, h)
+        qv = np.cross(s, e1)
+        v = f * np.einsum("mtk,mtk->mt", d, qv)
+        t = f * np.einsum("mtk,mtk->mt", e2 * np.ones_like(qv), qv)
+        return (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+def read_linespaces(built):
+    d = built.device
+    return (d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64),
+            d.read(built.buffers["ls_shaft_offsets"], np.uint32).astype(np.int64),
+            d.read(built.buffers["ls_shaft_tris"], np.uint32).astype(np.int64))
+
+
+@pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (3, None)])
+def test_shaft_candidates_hold_every_triangle_a_shaft_segment_meets(device, monkeypatch, n, test_kind):
+    """test_kind: the exact triangle/shaft test (None: the backend's default)."""
+    if test_kind is not None:
+        monkeypatch.setenv("LSBENCH_LS_TEST", test_kind)
+    scene = random_scene()
+    res = (3, 3, 2)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    assert built.stats["ls_exact_test"] == (test_kind or linespace.EXACT_TEST[device.backend])
+    ls_ids, offs, cand = read_linespaces(built)
+    per_cell = 15 * n**4
+    g = built.geometry
+    origin, size = np.asarray(g.origin), np.asarray(g.voxel_size)
+    tris = scene.vertices[scene.faces].astype(np.float64)
+    rng = np.random.default_rng(n)
+    starts, ends = shaft_segments(n, 12 if n < 3 else 8, rng)
+    voxels = np.flatnonzero(np.diff(ls_ids))
+    assert len(voxels) == built.stats["linespace_voxels"] > 0
+    hits_total = 0
+    culled = 0
+    for vox in voxels:
+        cell = np.array([vox % res[0], (vox // res[0]) % res[1], vox // (res[0] * res[1])])
+        c = ls_ids[vox]
+        p = origin + (cell + starts.reshape(-1, 3)) * size
+        q = origin + (cell + ends.reshape(-1, 3)) * size
+        hit = segments_hit(p, q, tris).reshape(per_cell, -1, len(tris)).any(axis=1)  # (shafts, T)
+        base = offs[c * per_cell:(c + 1) * per_cell + 1]
+        counts = np.diff(base)
+        is_cand = np.zeros_like(hit)
+        is_cand[np.repeat(np.arange(per_cell), counts), cand[base[0]:base[-1]]] = True
+        missing = np.argwhere(hit & ~is_cand)
+        assert len(missing) == 0, f"voxel {vox}: (shaft, triangle) pairs missing: {missing[:10].tolist()}"
+        hits_total += int(hit.sum())
+        culled += int(per_cell * len(set(cand[base[0]:base[-1]].tolist())) - counts.sum())
+    assert hits_total > 100  # the scene really puts triangles into shafts
+    assert culled > 0 or n == 1  # the Line Space does cull: not every shaft holds the whole list
+    assert built.stats["shafts"] == per_cell * len(voxels)
+    assert built.stats["candidate_references"] == len(cand)
+    built.release()
+
+
+def test_shaft_volumes_are_hulls_of_their_patches(device):
+    """The device's facet planes: every patch corner is inside every plane, and each plane touches
+    at least three corners (a real facet)."""
+    n = 2
+    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
+    buf = device.alloc("ls_planes", 16 * linespace.LS_MAX_PLANES * 15 * n**4)
+    device.dispatch(linespace.LS_PLANES, 15 * n**4, {"ls_planes": buf}, linespace.uniforms(geometry, n))
+    planes = device.read(buf, np.float32).reshape(15 * n**4, linespace.LS_MAX_PLANES, 4)
+    s = 0
+    for a, b in FACE_PAIRS:
+        for pa in range(n * n):
+            for pb in range(n * n):
+                pts = np.vstack([patch_points(a, pa, n, np.array([[0, 0], [0, 1], [1, 0], [1, 1.0]])),
+                                 patch_points(b, pb, n, np.array([[0, 0], [0, 1], [1, 0], [1, 1.0]]))])
+                real = planes[s][np.abs(planes[s][:, :3]).sum(1) > 0]
+                assert len(real) >= 5
+                dist = pts @ real[:, :3].T + real[:, 3]
+                assert dist.max() < 1e-5
+                assert (np.abs(dist) < 1e-5).sum(0).min() >= 3
+                s += 1
+    device.release(buf)
+
+
+@pytest.mark.parametrize("scene_name,resolution,size", [
+    ("spheres", (12, 12, 12), (40, 30)), ("atrium", (12, 6, 9), (40, 30)),
+])
+def test_builtin_scenes_agree_with_embree_and_grid(device, scene_name, resolution, size):
+    scene = load_scene(scene_name)
+    rays = primary_rays(scene, *size)
+    ref_p, ref_t = embree_closest(scene, rays)
+    grid = backends.build(device, "grid", scene, BuildParams(resolution=resolution))
+    grid_hits = backends.trace(grid, rays, work=True)
+    grid.release()
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=resolution, ls_n=2))
+    hits = backends.trace(built, rays, work=True)
+    built.release()
+    acc = accuracy(scene, hits, ref_p, ref_t)
+    assert acc.agreement >= 0.9999, acc
+    same = accuracy(scene, hits, grid_hits.prim_ids, grid_hits.distances)
+    assert same.disagreements == 0, same
+    # Same walk, fewer triangle tests, one lookup per visited Line Space voxel at most.
+    assert (hits.work[:, 0] == grid_hits.work[:, 0]).all()
+    assert hits.work[:, 1].sum() < grid_hits.work[:, 1].sum()
+    assert 0 < hits.work[:, 2].sum() <= hits.work[:, 0].sum()
+
+
+@pytest.mark.parametrize("n", [1, 4])
+def test_random_rays_agree_with_embree(device, n):
+    """Rays from everywhere (also inside the grid), non-cubic voxels, N up to 4."""
+    scene = random_scene(300, size=0.08, seed=11)
+    rays = random_rays(scene)
+    ref_p, ref_t = embree_closest(scene, rays)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=(7, 4, 5), ls_n=n))
+    hits = backends.trace(built, rays)
+    built.release()
+    acc = accuracy(scene, hits, ref_p, ref_t)
+    assert acc.agreement >= 0.9999, acc
+
+
+def test_min_candidates_keeps_hits_and_saves_memory(device):
+    scene = random_scene(300, size=0.08, seed=11)
+    rays = random_rays(scene, 3000)
+    params = dict(resolution=(7, 4, 5), ls_n=2)
+    full = backends.build(device, "grid-ls", scene, BuildParams(**params))
+    full_hits = backends.trace(full, rays)
+    full_bytes = full.memory_bytes
+    full.release()
+    for k in (4, 10**6):
+        part = backends.build(device, "grid-ls", scene, BuildParams(ls_min_candidates=k, **params))
+        hits = backends.trace(part, rays)
+        st = part.stats
+        part.release()
+        assert st["ls_min_candidates"] == k
+        assert st["linespace_skipped_voxels"] == st["non_empty_voxels"] - st["linespace_voxels"]
+        assert st["ls_offsets_bytes_saved"] == 4 * 240 * st["linespace_skipped_voxels"]
+        if k == 4:
+            assert 0 < st["linespace_voxels"] < st["non_empty_voxels"]
+            assert part.memory_bytes < full_bytes
+        else:  # no voxel gets a Line Space: a plain grid
+            assert st["linespace_voxels"] == 0 and st["shafts"] == 0
+        same = accuracy(scene, hits, full_hits.prim_ids, full_hits.distances)
+        assert same.disagreements == 0, same
+
+
+def test_sponza(device):
+    """Sponza at 64^3, N = 2 where the driver allows it (PoCL); llvmpipe's 128 MiB per SSBO does
+    not hold its 200 MB of candidates, so there 32^3, N = 1."""
+    scene = load_scene(scene_path("sponza.ply"))
+    rays = primary_rays(scene, 48, 48, SPONZA_CAMERA)
+    res, n = (64, 2) if device.max_buffer_bytes >= 2**30 else (32, 1)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=(res,) * 3, ls_n=n))
+    hits = backends.trace(built, rays)
+    built.release()
+    acc = accuracy(scene, hits, *embree_closest(scene, rays))
+    assert acc.agreement >= 0.9999, acc
+
+
+# --- limits -------------------------------------------------------------------------------------
+def test_wrapped_offsets_are_detected(device):
+    """The 32-bit scan wraps silently past 2^32 - 1: the check kernel finds the decrease."""
+    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
+    u = linespace.uniforms(geometry, 1)
+    for values, wrapped in (([0, 5, 9, 9, 4000000000, 4000000001], 0), ([0, 5, 4294967290, 3, 8], 1)):
+        offs = device.upload("offs", np.array(values, np.uint32))
+        flag = device.alloc("flag", 4)
+        device.dispatch(linespace.LS_CHECK, len(values) - 1, {"ls_check_offsets": offs, "ls_check_flag": flag}, u)
+        assert (device.read(flag, np.uint32, 1)[0] > 0) == bool(wrapped)
+        device.release(offs)
+        device.release(flag)
+
+
+def test_32bit_limits_raise(device, monkeypatch):
+    scene = random_scene()
+    monkeypatch.setattr(linespace, "UINT32_MAX", 1000)  # pretend 32 bits end at 1000
+    with pytest.raises(DeviceLimitError, match="32-bit"):
+        backends.build(device, "grid-ls", scene, BuildParams(resolution=(3, 3, 2), ls_n=2))
+
+
+def test_buffer_limit_raises_naming_it(device, monkeypatch):
+    scene = random_scene()
+    monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: 64 * 1024))
+    with pytest.raises(DeviceLimitError, match=device.limit_name):
+        backends.build(device, "grid-ls", scene, BuildParams(resolution=(3, 3, 2), ls_n=3))
