@@ -16,7 +16,7 @@
 
 #if defined(HAS_rays) && defined(HAS_esvo_nodes)
 INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
-#if defined(COUNT_WORK) && defined(CLOCK_START)
+#ifdef COUNT_WORK
     uint clock0 = CLOCK_START();
 #endif
     Hit best = no_hit(tmax);
@@ -148,19 +148,14 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
             }
         }
     }
-#if defined(COUNT_WORK) && defined(CLOCK_START)
+#ifdef COUNT_WORK
     V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
-#elif defined(COUNT_WORK)
-    V(work)[ray] = make_uint4(iterations, tests, 0u, 0u);
 #endif
     return best;
 }
 
 INLINE void trace_esvo_kernel(CTX_PARAM uint ray) {
-    float4 o = V(rays)[2u * ray];
-    float4 d = V(rays)[2u * ray + 1u];
-    Hit h = trace_esvo(CTX_ARG o.xyz, d.xyz, o.w, d.w, ray);
-    V(hit_prim)[ray] = h.prim;
-    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+    Ray r = load_ray(CTX_ARG ray);
+    store_hit(CTX_ARG ray, trace_esvo(CTX_ARG r.o, r.d, r.tmin, r.tmax, ray));
 }
 #endif  // esvo traversal

@@ -90,11 +90,6 @@ INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
     return t;
 }
 
-// Convenience form for one-off tests (traversals build the WRay once per ray).
-INLINE float ray_triangle(float3 o, float3 d, float3 v0, float3 v1, float3 v2) {
-    return ray_triangle_wt(make_wray(o, d), v0, v1, v2);
-}
-
 // --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------
 // The box is centred at the origin with half extent h; the triangle is already translated.
 // A zero axis (degenerate triangle, parallel edge) projects everything to 0 and never separates,

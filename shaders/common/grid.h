@@ -11,6 +11,17 @@ INLINE float3 to_grid(CTX_PARAM float3 p) {
     return (p - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
 }
 
+#ifdef HAS_faces
+// A triangle's corners in grid space (voxel (i,j,k) = unit cube at (i,j,k)).
+INLINE Triangle load_grid_triangle(CTX_PARAM uint tri) {
+    Triangle t = load_triangle(CTX_ARG tri);
+    t.a = to_grid(CTX_ARG t.a);
+    t.b = to_grid(CTX_ARG t.b);
+    t.c = to_grid(CTX_ARG t.c);
+    return t;
+}
+#endif
+
 INLINE uint voxel_index(CTX_PARAM int3 c) {
     int3 r = V(grid_res).xyz;
     return U32(c.x) + U32(r.x) * (U32(c.y) + U32(r.y) * U32(c.z));
@@ -36,10 +47,10 @@ INLINE int overlaps_voxel(float3 a, float3 b, float3 c, int3 cell, float eps) {
 
 // Compute-kernel voxelizer (OpenCL): one work item per triangle walks its clamped bounds.
 INLINE void voxelize_triangle(CTX_PARAM uint tri) {
-    Triangle t = load_triangle(CTX_ARG tri);
-    float3 a = to_grid(CTX_ARG t.a);
-    float3 b = to_grid(CTX_ARG t.b);
-    float3 c = to_grid(CTX_ARG t.c);
+    Triangle t = load_grid_triangle(CTX_ARG tri);
+    float3 a = t.a;
+    float3 b = t.b;
+    float3 c = t.c;
     float eps = V(box_eps);
     int3 r = V(grid_res).xyz;
     float3 lo = min(a, min(b, c)) - make_float3(eps, eps, eps);
@@ -62,10 +73,10 @@ INLINE void voxelize_kernel(CTX_PARAM uint gid) { voxelize_triangle(CTX_ARG gid)
 // neighbours the triangle's plane can reach over the column are tested (at most a few voxels,
 // since |n_w| is the largest normal component), each with the same exact overlap test.
 INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
-    Triangle t = load_triangle(CTX_ARG tri);
-    float3 a = to_grid(CTX_ARG t.a);
-    float3 b = to_grid(CTX_ARG t.b);
-    float3 c = to_grid(CTX_ARG t.c);
+    Triangle t = load_grid_triangle(CTX_ARG tri);
+    float3 a = t.a;
+    float3 b = t.b;
+    float3 c = t.c;
     float eps = V(box_eps);
     int3 r = V(grid_res).xyz;
     int u = (w + 1) % 3;
@@ -166,10 +177,7 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
 }
 
 INLINE void trace_grid_kernel(CTX_PARAM uint ray) {
-    float4 o = V(rays)[2u * ray];
-    float4 d = V(rays)[2u * ray + 1u];
-    Hit h = trace_grid(CTX_ARG o.xyz, d.xyz, o.w, d.w, ray);
-    V(hit_prim)[ray] = h.prim;
-    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+    Ray r = load_ray(CTX_ARG ray);
+    store_hit(CTX_ARG ray, trace_grid(CTX_ARG r.o, r.d, r.tmin, r.tmax, ray));
 }
 #endif  // traversal

@@ -43,6 +43,7 @@ INLINE void gls_cells_kernel(CTX_PARAM uint vox) {
 INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
     uint clock0 = CLOCK_START();
     Hit best = no_hit(tmax);
+    WRay wr = make_wray(o, d);
     float3 og = to_grid(CTX_ARG o);
     float3 dg = d * V(grid_inv_voxel).xyz;
     float3 inv = make_float3(safe_rcp(dg.x), safe_rcp(dg.y), safe_rcp(dg.z));
@@ -100,7 +101,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                     for (uint i = cb; i < ce; ++i) {
                         uint tri = V(ls_shaft_tris)[i];
                         Triangle T = load_triangle(CTX_ARG tri);
-                        float t = ray_triangle(o, d, T.a, T.b, T.c);
+                        float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;
                         if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
                     }
@@ -108,7 +109,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                     for (uint i = begin; i < end; ++i) {
                         uint tri = V(voxel_tris)[i];
                         Triangle T = load_triangle(CTX_ARG tri);
-                        float t = ray_triangle(o, d, T.a, T.b, T.c);
+                        float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;
                         if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
                     }
@@ -141,10 +142,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
 }
 
 INLINE void trace_grid_ls_kernel(CTX_PARAM uint ray) {
-    float4 o = V(rays)[2u * ray];
-    float4 d = V(rays)[2u * ray + 1u];
-    Hit h = trace_grid_ls(CTX_ARG o.xyz, d.xyz, o.w, d.w, ray);
-    V(hit_prim)[ray] = h.prim;
-    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+    Ray r = load_ray(CTX_ARG ray);
+    store_hit(CTX_ARG ray, trace_grid_ls(CTX_ARG r.o, r.d, r.tmin, r.tmax, ray));
 }
 #endif  // traversal

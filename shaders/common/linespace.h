@@ -261,10 +261,10 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint count = 0u;
     for (uint i = begin; i < end; ++i) {
         uint tri = V(ls_cell_tris)[i];
-        Triangle t = load_triangle(CTX_ARG tri);
-        float3 a = (to_grid(CTX_ARG t.a) - lo) * inv;
-        float3 b = (to_grid(CTX_ARG t.b) - lo) * inv;
-        float3 c = (to_grid(CTX_ARG t.c) - lo) * inv;
+        Triangle t = load_grid_triangle(CTX_ARG tri);
+        float3 a = (t.a - lo) * inv;
+        float3 b = (t.b - lo) * inv;
+        float3 c = (t.c - lo) * inv;
         int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
         int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
         int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);

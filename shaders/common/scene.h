@@ -18,6 +18,23 @@ INLINE Triangle load_triangle(CTX_PARAM uint tri) {
 
 STRUCT(Hit) { float t; int prim; };
 
+// One ray of the `rays` buffer and where its hit goes: every traversal's entry kernel is
+// store_hit(ray, trace_x(load_ray(ray)...)).
+#ifdef HAS_rays
+STRUCT(Ray) { float3 o; float tmin; float3 d; float tmax; };
+
+INLINE Ray load_ray(CTX_PARAM uint ray) {
+    float4 o = V(rays)[2u * ray];
+    float4 d = V(rays)[2u * ray + 1u];
+    Ray r;
+    r.o = o.xyz;
+    r.tmin = o.w;
+    r.d = d.xyz;
+    r.tmax = d.w;
+    return r;
+}
+#endif
+
 INLINE Hit no_hit(float tmax) { Hit h; h.t = tmax; h.prim = -1; return h; }
 
 // Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
@@ -44,4 +61,11 @@ INLINE uint clock_now_ptx(void) {
 #define CLOCK_NOW() clock_now_ptx()
 #else
 #define CLOCK_NOW() 0u
+#endif
+
+#ifdef HAS_rays
+INLINE void store_hit(CTX_PARAM uint ray, Hit h) {
+    V(hit_prim)[ray] = h.prim;
+    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+}
 #endif
