@@ -284,52 +284,43 @@ def _by_backend(records):
     return groups
 
 
+def _backend_tables(records, empty_text, row_dims, cell) -> list[str]:
+    """One pivot table per backend/device, side by side (structures as columns)."""
+    out = [f"<p class='small'>{empty_text}</p>"] if not records else []
+    out.append("<div class='side'>")
+    for (backend, device), recs in _by_backend(records).items():
+        out.append(f"<div><h3>{e(backend)} — {e(device)}</h3>")
+        out.append(pivot_table(recs, _row_dims(recs, *row_dims), lambda r: r.get("structure", "?"),
+                               _structure_sort, cell) + "</div>")
+    out.append("</div>")
+    return out
+
+
 def _tables(records, min_agree):
     out = []
     plain = [r for r in records if not _is_ls(r)]
     ls = [r for r in records if _is_ls(r)]
-    col_fn = lambda r: r.get("structure", "?")
     image = sorted({f"{r.get('width')}×{r.get('height')}" for r in records})
+    no_plain = "No plain-structure cases in this run."
 
     out.append("<h2 id='table1'>Table 1 — performance of the structures (FPS)</h2>")
     out.append(f"<p>Bold: frames per second at {e(', '.join(image))} (one ray per pixel for "
                f"primary rays; FPS = rays/s ÷ rays per frame); below it rays/s. Median of the "
                f"timed repeats. Red: the case failed, with its reason (hover for the full text). "
                f"Amber: agreement with Embree below {min_agree:g}.</p>")
-    if not plain:
-        out.append("<p class='small'>No plain-structure cases in this run.</p>")
-    out.append("<div class='side'>")
-    for (backend, device), recs in _by_backend(plain).items():
-        out.append(f"<div><h3>{e(backend)} — {e(device)}</h3>")
-        out.append(pivot_table(recs, _row_dims(recs, [SCENE_DIM], [RES_DIM]), col_fn,
-                               _structure_sort, lambda r: _perf_cell(r, min_agree)) + "</div>")
-    out.append("</div>")
+    out += _backend_tables(plain, no_plain, ([SCENE_DIM], [RES_DIM]), lambda r: _perf_cell(r, min_agree))
 
     out.append("<h2 id='table2'>Table 2 — memory of the structures (MiB)</h2>")
     out.append("<p>Bytes used by the structure's buffers (scene triangles excluded where the "
                "runner reports them apart); hover a cell for the per-buffer breakdown. "
                "'alloc' shows where more was allocated than used.</p>")
-    if not plain:
-        out.append("<p class='small'>No plain-structure cases in this run.</p>")
-    out.append("<div class='side'>")
-    for (backend, device), recs in _by_backend(plain).items():
-        out.append(f"<div><h3>{e(backend)} — {e(device)}</h3>")
-        out.append(pivot_table(recs, _row_dims(recs, [SCENE_DIM], [RES_DIM]), col_fn,
-                               _structure_sort, lambda r: _mem_cell(r, min_agree)) + "</div>")
-    out.append("</div>")
+    out += _backend_tables(plain, no_plain, ([SCENE_DIM], [RES_DIM]), lambda r: _mem_cell(r, min_agree))
 
     out.append("<h2 id='table3'>Table 3 — Line Space structures × N × resolution</h2>")
     out.append("<p>FPS (bold), rays/s and MiB per case; N is the Line Space shaft constant "
                "(15·N⁴ shafts per voxel). Red cells say why a case did not run.</p>")
-    if not ls:
-        out.append("<p class='small'>No Line Space cases in this run.</p>")
-    out.append("<div class='side'>")
-    for (backend, device), recs in _by_backend(ls).items():
-        out.append(f"<div><h3>{e(backend)} — {e(device)}</h3>")
-        out.append(pivot_table(recs, _row_dims(recs, [SCENE_DIM], [N_DIM, RES_DIM]), col_fn,
-                               _structure_sort, lambda r: _perf_cell(r, min_agree, memory=True))
-                   + "</div>")
-    out.append("</div>")
+    out += _backend_tables(ls, "No Line Space cases in this run.", ([SCENE_DIM], [N_DIM, RES_DIM]),
+                           lambda r: _perf_cell(r, min_agree, memory=True))
     return out
 
 
