@@ -1,10 +1,13 @@
 """RaySet: origins + normalized directions (plain data); generators live below."""
 from __future__ import annotations
 
-import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from harness.scene import Camera, Scene, arrays_hash
 
 
 @dataclass
@@ -24,20 +27,12 @@ class RaySet:
     @property
     def content_hash(self) -> str:
         if self._hash is None:
-            h = hashlib.sha256()
-            h.update(np.ascontiguousarray(self.origins, dtype=np.float32).tobytes())
-            h.update(np.ascontiguousarray(self.directions, dtype=np.float32).tobytes())
-            self._hash = h.hexdigest()[:16]
+            self._hash = arrays_hash(np.asarray(self.origins, np.float32), np.asarray(self.directions, np.float32))
         return self._hash
 
 
 # ----------------------------------------------------------------------------------------------
-# generators (kept below the RaySet contract; imports here so the contract above stays untouched)
-
-from collections.abc import Callable  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-from harness.scene import Camera, Scene  # noqa: E402
+# generators
 
 
 class RayError(ValueError):

@@ -11,6 +11,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def arrays_hash(*arrays: np.ndarray) -> str:
+    """Short sha256 of the arrays' bytes in order: the identity of a scene or ray set in caches
+    and records (callers fix the dtypes, so the same data always hashes the same)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
 class SceneError(ValueError):
     """Bad scene input (missing/corrupt file, empty mesh, NaN/Inf vertices): one-line message."""
 
@@ -50,8 +59,5 @@ class Scene:
     @property
     def content_hash(self) -> str:
         if self._hash is None:
-            h = hashlib.sha256()
-            h.update(np.ascontiguousarray(self.vertices, dtype=np.float32).tobytes())
-            h.update(np.ascontiguousarray(self.faces, dtype=np.uint32).tobytes())
-            self._hash = h.hexdigest()[:16]
+            self._hash = arrays_hash(np.asarray(self.vertices, np.float32), np.asarray(self.faces, np.uint32))
         return self._hash
