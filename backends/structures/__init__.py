@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from . import grid, grid_ls
 from . import esvo, svo
+from .octree_ls import esvo_ls, svo_ls
 
 STRUCTURES = {
     "grid": grid,
     "grid-ls": grid_ls,
     "svo": svo,
     "esvo": esvo,
+    "svo-ls": svo_ls,
+    "esvo-ls": esvo_ls,
 }
 
 # Octrees need a cubic, power-of-two grid over the scene's bounding cube.
-CUBIC_STRUCTURES: set[str] = {"svo", "esvo"}
+CUBIC_STRUCTURES: set[str] = {"svo", "esvo", "svo-ls", "esvo-ls"}

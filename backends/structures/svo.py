@@ -106,9 +106,13 @@ def _compile(device: Device, spec: KernelSpec) -> None:
 
 
 def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
-                 layout: str) -> tuple[dict[str, DeviceBuffer], dict]:
+                 layout: str, leaf_hook=None) -> tuple[dict[str, DeviceBuffer], dict]:
     """Voxel lists -> bit pyramid -> ranks -> nodes + leaves (module docstring). Returns the
-    structure's buffers (nodes, leaves, voxel_tris) and stats."""
+    structure's buffers (nodes, leaves, voxel_tris) and stats.
+
+    leaf_hook(pyramid, leaves, n_leaves): called once the leaves are linked, while the bit
+    pyramid still exists (pyramid: dict with the level_words, oct_bits and oct_ranks buffers and
+    the build's uniforms); svo-ls / esvo-ls find their leaves' voxels there (octree_ls.py)."""
     depth = octree_depth(geometry.resolution)
     nodes_name, node_bytes, create = LAYOUTS[layout]
     vox, vstats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
@@ -163,6 +167,9 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
         device.dispatch(LINK_LEAVES, int(lw[depth + 1] - lw[depth]),
                         {"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks,
                          "voxel_offsets": offsets, "leaves": leaves}, uniforms)
+        if leaf_hook is not None:
+            leaf_hook({"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks, "uniforms": uniforms,
+                       "leaf_words": int(lw[depth + 1] - lw[depth])}, leaves, n_leaves)
         device.finish()
     except BaseException:
         for b in made + [tris]:

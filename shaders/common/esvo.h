@@ -15,12 +15,24 @@
 #define ESVO_SMAX 23
 
 #if defined(HAS_rays) && defined(HAS_esvo_nodes)
+// Voxel coordinates of the leaf whose mirrored min corner is `pos` (edge `edge`, octree space
+// [1,2]^3): undo the mirroring (x -> 3 - x turns [pos, pos + edge] into [3 - pos - edge, 3 - pos]),
+// then scale to the grid. Every value is an exact binary fraction; + 0.5 only guards the floor.
+INLINE int3 esvo_leaf_cell(float3 pos, float edge, uint mirror, float res) {
+    float x = (mirror & 1u) != 0u ? 3.0f - pos.x - edge : pos.x;
+    float y = (mirror & 2u) != 0u ? 3.0f - pos.y - edge : pos.y;
+    float z = (mirror & 4u) != 0u ? 3.0f - pos.z - edge : pos.z;
+    return make_int3(I32(floor((x - 1.0f) * res + 0.5f)), I32(floor((y - 1.0f) * res + 0.5f)),
+                     I32(floor((z - 1.0f) * res + 0.5f)));
+}
+
 INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
 #ifdef COUNT_WORK
     uint clock0 = CLOCK_START();
 #endif
     Hit best = no_hit(tmax);
     WRay wr = make_wray(o, d);
+    GridRay gr = make_grid_ray(CTX_ARG o, d);  // esvo-ls' Line Space lookup only
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
     // divided by the cube's edge, shifted by one; the direction divided by the edge and
     // normalized. t' = t * dlen, so every world distance below is t' / dlen.
@@ -56,6 +68,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
     float t_end = t_max / dlen;  // where the ray leaves the cube (or tmax), world units
     uint iterations = 0u;
     uint tests = 0u;
+    uint lookups = 0u;
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
         // one per level above the leaves, "sized to depth".
@@ -91,9 +104,11 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
                     if (scale == leaf_scale) {
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;
-                        LeafResult lr = oct_test_leaf(CTX_ARG wr, child, oct_accept(t_exit, t_end, voxel_t), tmin, best);
+                        LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
+                                                      oct_accept(t_exit, t_end, voxel_t), tmin, best);
                         best = lr.best;
                         tests += lr.tests;
+                        lookups += lr.lookups;
                         if (best.prim >= 0 && best.t <= t_exit) break;
                     } else {
                         // PUSH: remember the parent unless the ray leaves it together with
@@ -149,7 +164,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
         }
     }
 #ifdef COUNT_WORK
-    V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
+    V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
     return best;
 }

@@ -164,20 +164,53 @@ INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
 // exit, so the margin never lets a farther hit win; it only keeps a hit that float rounding
 // of the exit distance would push just outside the leaf (it is found in this leaf, and a
 // triangle may not reach into the next one).
-STRUCT(LeafResult) { Hit best; uint tests; };
+STRUCT(LeafResult) { Hit best; uint tests; uint lookups; };
 
-INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, uint leaf, float t_accept, float tmin, Hit best) {
+// The ray in grid space (voxel = unit cube), for the Line Space lookup of svo-ls / esvo-ls; the
+// plain octrees never read it and their compilers drop it.
+STRUCT(GridRay) { float3 o; float3 d; float3 inv; };
+
+INLINE GridRay make_grid_ray(CTX_PARAM float3 o, float3 d) {
+    GridRay g;
+    g.o = (o - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
+    g.d = d * V(grid_inv_voxel).xyz;
+    g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
+    return g;
+}
+
+// Candidates of leaf `leaf` (voxel `cell`) against the ray. svo-ls / esvo-ls (HAS_ls_shaft_tris,
+// Algorithm 3): a leaf with a Line Space (ls_ids, as in grid_ls.h) gives only the candidates of
+// the shaft that holds the ray's chord through the leaf, looked up from the chord's entry and
+// exit face and patch (linespace.h); an empty shaft skips the leaf with no triangle test. A leaf
+// without one (at most ls_min_count candidates) tests its plain list.
+INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 cell, float t_accept,
+                                float tmin, Hit best) {
     LeafResult res;
     uint begin = V(leaves)[2u * leaf];
     uint end = begin + V(leaves)[2u * leaf + 1u];
+    int from_shaft = 0;
+#ifdef HAS_ls_shaft_tris
+    uint ls = V(ls_ids)[leaf];
+    if (V(ls_ids)[leaf + 1u] > ls) {
+        uint sid = ls * V(ls_shafts) + ls_chord_shaft(V(ls_n), gr.o, gr.d, gr.inv, cell);
+        begin = V(ls_shaft_offsets)[sid];
+        end = V(ls_shaft_offsets)[sid + 1u];
+        from_shaft = 1;
+    }
+#endif
     for (uint i = begin; i < end; ++i) {
+#ifdef HAS_ls_shaft_tris
+        uint tri = from_shaft != 0 ? V(ls_shaft_tris)[i] : V(voxel_tris)[i];
+#else
         uint tri = V(voxel_tris)[i];
+#endif
         Triangle T = load_triangle(CTX_ARG tri);
         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
         if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
     }
     res.best = best;
     res.tests = end - begin;
+    res.lookups = U32(from_shaft);
     return res;
 }
 
@@ -198,19 +231,16 @@ INLINE float oct_accept(float t_exit, float t_end, float voxel_t) {
 // and goes up while that neighbour lies outside the parent (lines 23-31: the parent is left
 // through the same face, so the step repeats one level up). Ends at the first hit that lies
 // inside the current leaf, or when the ray leaves the root.
-INLINE float3 svo_to_grid(CTX_PARAM float3 p) {
-    return (p - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
-}
-
 INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
 #ifdef COUNT_WORK
     uint clock0 = CLOCK_START();
 #endif
     Hit best = no_hit(tmax);
     WRay wr = make_wray(o, d);
-    float3 og = svo_to_grid(CTX_ARG o);
-    float3 dg = d * V(grid_inv_voxel).xyz;
-    float3 inv = make_float3(safe_rcp(dg.x), safe_rcp(dg.y), safe_rcp(dg.z));
+    GridRay gr = make_grid_ray(CTX_ARG o, d);
+    float3 og = gr.o;
+    float3 dg = gr.d;
+    float3 inv = gr.inv;
     int res = V(grid_res).x;
     float fres = F32(res);
     float2 span = ray_box(og, inv, dg, make_float3(0.0f, 0.0f, 0.0f), make_float3(fres, fres, fres));
@@ -219,6 +249,7 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
     float voxel_t = 1.0f / max(fabs(dg.x), max(fabs(dg.y), fabs(dg.z)));  // >= shortest voxel crossing
     uint iterations = 0u;
     uint tests = 0u;
+    uint lookups = 0u;
     if (t0 <= t1) {
         uint stack[OCT_DEPTH];
         stack[0] = 0u;  // the root
@@ -241,9 +272,12 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
             uint child = V(svo_nodes)[8u * stack[level - 1] + slot];
             if (child != 0u) {
                 if (level == OCT_DEPTH) {
-                    LeafResult lr = oct_test_leaf(CTX_ARG wr, child - 1u, oct_accept(t_exit, t1, voxel_t), tmin, best);
+                    // At the last level `cell` is the leaf's voxel.
+                    LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child - 1u, cell, oct_accept(t_exit, t1, voxel_t),
+                                                  tmin, best);
                     best = lr.best;
                     tests += lr.tests;
+                    lookups += lr.lookups;
                     if (best.prim >= 0 && best.t <= t_exit) break;
                 } else {
                     // Descend (lines 11-18): enter the child octant that holds the entry point.
@@ -283,7 +317,7 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
         }
     }
 #ifdef COUNT_WORK
-    V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
+    V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
     return best;
 }

@@ -1,0 +1,130 @@
+"""`svo-ls` and `esvo-ls`: the adaptive Line Space (thesis 4, 5.1, Algorithm 3): the octrees of
+`svo` (node pool) and `esvo` (Laine & Karras descriptors) with a candidate-list Line Space in
+their leaves.
+
+Build, all on the device:
+1. the octree, exactly as `svo` / `esvo` build it (svo.build_octree);
+2. while its bit pyramid exists: flag the leaves that get a Line Space (more than K =
+   ls_min_candidates candidates), exclusive scan -> ls_ids (leaf -> Line Space index), and write
+   each such leaf's cell (its voxel's box in grid space, its candidate range in voxel_tris)
+   (shaders/common/octree_ls.h);
+3. the Line Spaces of those cells: linespace.build_linespaces (count -> scan -> fill, the same
+   code as grid-ls).
+
+Trace: the svo / esvo traversal unchanged; at every leaf oct_test_leaf (shaders/common/svo.h)
+looks up the shaft of the ray's chord through the leaf from its entry and exit face and patch
+(linespace.h: ls_chord_shaft) and tests only that shaft's candidates.
+
+Our octrees keep leaves only on the last level (thesis 5.2.1), so the leaves are the grid's
+non-empty voxels; what the octree adds over grid-ls is the hierarchical skipping of empty space.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..device import Device, DeviceBuffer
+from ..kernels import RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from . import esvo, linespace, svo
+from .base import BuildParams, GridGeometry
+
+OLS_BUILD_HEADERS = ("geometry.h", "svo.h", "octree_ls.h")
+OLS_UNIFORMS = svo.OCT_UNIFORMS + (Uniform("ls_min_count", "uint"),)
+LEAF_FLAGS = KernelSpec(
+    "oct_ls_flags", OLS_BUILD_HEADERS, "oct_ls_flags_kernel",
+    (Buf("leaves", "uint", "r"), Buf("ls_flags", "uint", "w")), OLS_UNIFORMS)
+LEAF_CELLS = KernelSpec(
+    "oct_ls_cells", OLS_BUILD_HEADERS, "oct_ls_cells_kernel",
+    (Buf("level_words", "uint", "r"), Buf("oct_bits", "uint", "r"), Buf("oct_ranks", "uint", "r"),
+     Buf("leaves", "uint", "r"), Buf("ls_ids", "uint", "r"), Buf("ls_cell_boxes", "float4", "w"),
+     Buf("ls_cell_ranges", "uint", "w")), OLS_UNIFORMS)
+
+# Traversal: the octree's own kernel with the Line Space buffers bound (HAS_ls_shaft_tris turns
+# the lookup in oct_test_leaf on); linespace.h before svo.h for ls_chord_shaft.
+_TRACE_HEADERS = ("geometry.h", "scene.h", "linespace.h", "svo.h")
+_LS_BUFFERS = (Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"), Buf("ls_ids", "uint", "r"),
+               Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "r"))
+TRACE_SVO_LS = KernelSpec(
+    "trace_svo_ls", _TRACE_HEADERS, "trace_svo_kernel",
+    SCENE_BUFFERS + (Buf("svo_nodes", "uint", "r"),) + _LS_BUFFERS + RAY_BUFFERS, linespace.LS_UNIFORMS)
+TRACE_ESVO_LS = KernelSpec(
+    "trace_esvo_ls", _TRACE_HEADERS + ("esvo.h",), "trace_esvo_kernel",
+    SCENE_BUFFERS + (Buf("esvo_nodes", "uint", "r"),) + _LS_BUFFERS + RAY_BUFFERS, linespace.LS_UNIFORMS)
+
+
+@dataclass(frozen=True)
+class LineSpaceOctree:
+    """One octree layout with Line Spaces in its leaves (the registry's prepare/build pair)."""
+    layout: str  # "svo" or "esvo" (svo.LAYOUTS)
+    trace: KernelSpec
+
+    def prepare(self, device: Device) -> None:
+        (svo if self.layout == "svo" else esvo).prepare(device)
+        linespace.prepare(device)
+        for spec in (LEAF_FLAGS, LEAF_CELLS):
+            svo._compile(device, spec)
+
+    def build(self, device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+              params: BuildParams):
+        svo.octree_depth(params.resolution)  # ValueError before any work
+        n = linespace.check_n(params.ls_n or 1)  # an LS structure always has a Line Space
+        k = int(params.ls_min_candidates)
+        if k < 0:
+            raise ValueError(f"ls_min_candidates must be >= 0, got {k}")
+        made: dict[str, DeviceBuffer] = {}  # the hook's buffers, released here if anything fails
+
+        def leaf_cells(pyramid: dict, leaves: DeviceBuffer, n_leaves: int) -> None:
+            u = dict(pyramid["uniforms"], ls_min_count=k)
+            flags = device.alloc("ls_flags", 4 * max(n_leaves, 1), zero=False)
+            try:
+                device.dispatch(LEAF_FLAGS, n_leaves, {"leaves": leaves, "ls_flags": flags}, u)
+                made["ls_ids"], made["n_cells"] = device.exclusive_scan(flags, n_leaves, "ls_ids")
+            finally:
+                device.release(flags)
+            n_cells = made["n_cells"]
+            made["ls_cell_boxes"] = device.alloc("ls_cell_boxes", 32 * max(n_cells, 1), zero=False)
+            made["ls_cell_ranges"] = device.alloc("ls_cell_ranges", 8 * max(n_cells, 1), zero=False)
+            device.dispatch(LEAF_CELLS, pyramid["leaf_words"],
+                            {"level_words": pyramid["level_words"], "oct_bits": pyramid["oct_bits"],
+                             "oct_ranks": pyramid["oct_ranks"], "leaves": leaves, "ls_ids": made["ls_ids"],
+                             "ls_cell_boxes": made["ls_cell_boxes"],
+                             "ls_cell_ranges": made["ls_cell_ranges"]}, u)
+
+        buffers: dict[str, DeviceBuffer] = {}
+        try:
+            buffers, stats = svo.build_octree(device, scene_buffers, n_tris, geometry, self.layout,
+                                              leaf_hook=leaf_cells)
+            n_cells = made.pop("n_cells")
+            cells = linespace.Cells(n_cells, made["ls_cell_boxes"], made["ls_cell_ranges"],
+                                    buffers["voxel_tris"], stats["references"])
+            ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n)
+        except BaseException:
+            for b in list(made.values()) + list(buffers.values()):
+                if isinstance(b, DeviceBuffer):
+                    device.release(b)
+            raise
+        device.release(made.pop("ls_cell_boxes"))
+        device.release(made.pop("ls_cell_ranges"))
+        buffers["ls_ids"] = made.pop("ls_ids")
+        buffers.update(ls.buffers)
+        leaves = stats["leaves"]
+        if n_cells == leaves:
+            # Every leaf reads its Line Space: the plain lists are never read again.
+            device.release(buffers["voxel_tris"])
+            buffers["voxel_tris"] = device.alloc("voxel_tris", 4)
+        skipped = leaves - n_cells
+        stats.update(ls.stats)
+        stats.update({
+            "linespace_leaves": n_cells,
+            "linespace_skipped_leaves": skipped,
+            "ls_min_candidates": k,
+            # Shaft offsets the skipped leaves do not need (their candidates are not counted
+            # here: compare memory_bytes with a K = 0 build for the whole saving).
+            "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell,
+            "bytes": {name: b.used for name, b in buffers.items()},
+        })
+        uniforms = linespace.uniforms(geometry, n)
+        return buffers, uniforms, self.trace.with_defines(OCT_DEPTH=stats["depth"]), stats
+
+
+svo_ls = LineSpaceOctree("svo", TRACE_SVO_LS)
+esvo_ls = LineSpaceOctree("esvo", TRACE_ESVO_LS)
