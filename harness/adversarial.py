@@ -444,6 +444,7 @@ def structure_params(structure: str, cubic_res: int = 16, grid_res=(12, 16, 9)) 
     others a non-cubic grid."""
     import backends
 
+    ls_n = 2 if structure.endswith("-ls") else 0
     if structure in backends.CUBIC_STRUCTURES:
-        return {"resolution": (cubic_res,) * 3, "ls_n": 0}
-    return {"resolution": tuple(grid_res), "ls_n": 2 if structure.endswith("-ls") else 0}
+        return {"resolution": (cubic_res,) * 3, "ls_n": ls_n}
+    return {"resolution": tuple(grid_res), "ls_n": ls_n}

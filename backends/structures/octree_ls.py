@@ -106,11 +106,10 @@ class LineSpaceOctree:
         device.release(made.pop("ls_cell_ranges"))
         buffers["ls_ids"] = made.pop("ls_ids")
         buffers.update(ls.buffers)
+        # The leaves' plain lists stay even when every leaf has a Line Space: a leaf that the walk
+        # meets off its chord tests them instead of a shaft (oct_test_leaf in svo.h); they cost
+        # 4 bytes per reference, a small part of the Line Spaces.
         leaves = stats["leaves"]
-        if n_cells == leaves:
-            # Every leaf reads its Line Space: the plain lists are never read again.
-            device.release(buffers["voxel_tris"])
-            buffers["voxel_tris"] = device.alloc("voxel_tris", 4)
         skipped = leaves - n_cells
         stats.update(ls.stats)
         stats.update({

@@ -105,6 +105,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;
                         LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
+                                                      make_float2(t_min / dlen, t_exit),
                                                       oct_accept(t_exit, t_end, voxel_t), tmin, best);
                         best = lr.best;
                         tests += lr.tests;

@@ -51,13 +51,16 @@ INLINE uint ls_shaft_id(uint n, int face_s, float2 uv_s, int face_e, float2 uv_e
     return n2 * n2 * ls_block(face_s, face_e) + n2 * ps + pe;
 }
 
-// Shaft of the ray's chord through the unit cell with min corner `cell` (grid space), for a
+// The ray's chord through the unit cell with min corner `cell` (grid space) and its shaft, for a
 // traversal that meets the cell on its own (svo-ls / esvo-ls leaves, Algorithm 3: entry and exit
 // face and patch computed per leaf; grid-ls carries the exit over to the next voxel instead).
 // The chord is the ray's line through the cell, also when the origin lies inside: the shaft of
 // the whole chord holds the part the ray covers. og, dg: ray in grid space; inv = 1 / dg with
 // safe_rcp (an axis the ray does not move along is never an entry or exit axis).
-INLINE uint ls_chord_shaft(uint n, float3 og, float3 dg, float3 inv, int3 cell) {
+// t_in / t_out: where the line enters and leaves the cell (t_in > t_out: it misses the cell).
+STRUCT(LsChord) { uint shaft; float t_in; float t_out; };
+
+INLINE LsChord ls_chord(uint n, float3 og, float3 dg, float3 inv, int3 cell) {
     float3 lo = make_float3(F32(cell.x), F32(cell.y), F32(cell.z));
     float ex = dg.x == 0.0f ? -INF_F : (lo.x + (dg.x > 0.0f ? 0.0f : 1.0f) - og.x) * inv.x;
     float ey = dg.y == 0.0f ? -INF_F : (lo.y + (dg.y > 0.0f ? 0.0f : 1.0f) - og.y) * inv.y;
@@ -67,14 +70,16 @@ INLINE uint ls_chord_shaft(uint n, float3 og, float3 dg, float3 inv, int3 cell) 
     float xz = dg.z == 0.0f ? INF_F : (lo.z + (dg.z > 0.0f ? 1.0f : 0.0f) - og.z) * inv.z;
     int axis_in = (ex >= ey && ex >= ez) ? 0 : (ey >= ez ? 1 : 2);
     int axis_out = (xx <= xy && xx <= xz) ? 0 : (xy <= xz ? 1 : 2);
-    float t_in = max(ex, max(ey, ez));
-    float t_out = min(xx, min(xy, xz));
+    LsChord ch;
+    ch.t_in = max(ex, max(ey, ez));
+    ch.t_out = min(xx, min(xy, xz));
     // Face 2a + side: the ray enters an axis it runs up through side 0 and leaves it through side 1.
     int face_in = 2 * axis_in + (comp3(dg, axis_in) > 0.0f ? 0 : 1);
     int face_out = 2 * axis_out + (comp3(dg, axis_out) > 0.0f ? 1 : 0);
-    float2 uv_in = ls_face_uv(og + dg * t_in - lo, axis_in);
-    float2 uv_out = ls_face_uv(og + dg * t_out - lo, axis_out);
-    return ls_shaft_id(n, face_in, uv_in, face_out, uv_out);
+    float2 uv_in = ls_face_uv(og + dg * ch.t_in - lo, axis_in);
+    float2 uv_out = ls_face_uv(og + dg * ch.t_out - lo, axis_out);
+    ch.shaft = ls_shaft_id(n, face_in, uv_in, face_out, uv_out);
+    return ch;
 }
 
 // Corner k (0..3) of patch p on face f, cell-local.

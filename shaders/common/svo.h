@@ -167,14 +167,16 @@ INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
 STRUCT(LeafResult) { Hit best; uint tests; uint lookups; };
 
 // The ray in grid space (voxel = unit cube), for the Line Space lookup of svo-ls / esvo-ls; the
-// plain octrees never read it and their compilers drop it.
-STRUCT(GridRay) { float3 o; float3 d; float3 inv; };
+// plain octrees never read it and their compilers drop it. voxel_t: one voxel edge along the
+// ray's main axis, in t (the most t a chord through one voxel can span along that axis).
+STRUCT(GridRay) { float3 o; float3 d; float3 inv; float voxel_t; };
 
 INLINE GridRay make_grid_ray(CTX_PARAM float3 o, float3 d) {
     GridRay g;
     g.o = (o - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
     g.d = d * V(grid_inv_voxel).xyz;
     g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
+    g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
     return g;
 }
 
@@ -183,8 +185,16 @@ INLINE GridRay make_grid_ray(CTX_PARAM float3 o, float3 d) {
 // the shaft that holds the ray's chord through the leaf, looked up from the chord's entry and
 // exit face and patch (linespace.h); an empty shaft skips the leaf with no triangle test. A leaf
 // without one (at most ls_min_count candidates) tests its plain list.
-INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 cell, float t_accept,
-                                float tmin, Hit best) {
+//
+// t_leaf: the stretch of the ray the traversal gives this leaf (world t). The shaft holds what
+// the real line meets inside the leaf, so it serves only if the chord covers that stretch, up to
+// half the build's margin (LS_EPS = 1e-3 cell units; a point t past the chord's end lies at most
+// t / voxel_t cell units outside). svo's walk uses the chord's own arithmetic, so it always does;
+// esvo walks a slightly different line (direction components below 2^-23 are raised to it, LK10),
+// and a ray in a leaf's face plane can then be given a leaf its real line only touches: that leaf
+// tests its plain list (tests/test_adversarial.py found such rays).
+INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 cell, float2 t_leaf,
+                                float t_accept, float tmin, Hit best) {
     LeafResult res;
     uint begin = V(leaves)[2u * leaf];
     uint end = begin + V(leaves)[2u * leaf + 1u];
@@ -192,10 +202,14 @@ INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 c
 #ifdef HAS_ls_shaft_tris
     uint ls = V(ls_ids)[leaf];
     if (V(ls_ids)[leaf + 1u] > ls) {
-        uint sid = ls * V(ls_shafts) + ls_chord_shaft(V(ls_n), gr.o, gr.d, gr.inv, cell);
-        begin = V(ls_shaft_offsets)[sid];
-        end = V(ls_shaft_offsets)[sid + 1u];
-        from_shaft = 1;
+        LsChord ch = ls_chord(V(ls_n), gr.o, gr.d, gr.inv, cell);
+        float tol = 5e-4f * gr.voxel_t + 1e-6f * max(fabs(t_leaf.x), fabs(t_leaf.y));
+        if (ch.t_in <= t_leaf.x + tol && ch.t_out >= t_leaf.y - tol) {
+            uint sid = ls * V(ls_shafts) + ch.shaft;
+            begin = V(ls_shaft_offsets)[sid];
+            end = V(ls_shaft_offsets)[sid + 1u];
+            from_shaft = 1;
+        }
     }
 #endif
     for (uint i = begin; i < end; ++i) {
@@ -272,9 +286,10 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
             uint child = V(svo_nodes)[8u * stack[level - 1] + slot];
             if (child != 0u) {
                 if (level == OCT_DEPTH) {
-                    // At the last level `cell` is the leaf's voxel.
-                    LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child - 1u, cell, oct_accept(t_exit, t1, voxel_t),
-                                                  tmin, best);
+                    // At the last level `cell` is the leaf's voxel, and the walk's stretch in it
+                    // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
+                    LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child - 1u, cell, make_float2(t_exit, t_exit),
+                                                  oct_accept(t_exit, t1, voxel_t), tmin, best);
                     best = lr.best;
                     tests += lr.tests;
                     lookups += lr.lookups;
