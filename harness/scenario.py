@@ -20,7 +20,7 @@
     backends = ["glsl", "opencl"]
     resolutions = [64, "64x32x16"]
     ls_n = [0]               # Line Space N (0 = none)
-    ls_min_candidates = 0
+    ls_min_candidates = 0    # or a list: only cells with more candidates get a Line Space
     camera = { eye = [1100, 180, -40], target = [-900, 420, 40], up = [0, 1, 0], fov = 65 }
                              # optional; default: the scene's own camera or one from its bounds
 
@@ -161,8 +161,11 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
         names = _as_list(block.get("structures"), "structures")
         backs = _as_list(block.get("backends", list(BACKENDS)), "backends")
         resolutions = _as_list(block.get("resolutions"), "resolutions")
-        ns = [int(n) for n in _as_list(block.get("ls_n", [2]), "ls_n")]  # N for Line Space structures
-        kmin = int(block.get("ls_min_candidates", 0))
+        try:
+            ns = [int(n) for n in _as_list(block.get("ls_n", [2]), "ls_n")]  # N for Line Space structures
+            ks = [int(k) for k in _as_list(block.get("ls_min_candidates", 0), "ls_min_candidates")]
+        except (TypeError, ValueError) as exc:
+            raise ScenarioError(f"{where}: ls_n and ls_min_candidates take integers ({exc})") from None
         camera = _camera(block.get("camera"), where)
         if not scenes or not names or not resolutions:
             raise ScenarioError(f"{where}: needs scenes, structures and resolutions")
@@ -177,9 +180,11 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
                 for b in backs:
                     for r in resolutions:
                         # A Line Space N only means something for Line Space structures.
-                        for n in (ns if s.endswith("-ls") else [0]):
-                            cases.append(Case(scene, s, b, str(r), n, kmin if s.endswith("-ls") else 0,
-                                              settings.rays, width, height, camera))
+                        line_space = s.endswith("-ls")
+                        for n in (ns if line_space else [0]):
+                            for k in (ks if line_space else [0]):
+                                cases.append(Case(scene, s, b, str(r), n, k, settings.rays, width, height,
+                                                  camera))
     seen, unique = set(), []
     for c in cases:
         if c.key not in seen:

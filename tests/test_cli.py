@@ -139,3 +139,22 @@ def test_ci_gate_scenario_passes():
                    "--fresh")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
     assert "gate passed" in proc.stdout
+
+
+def test_scenario_ls_min_candidates_list_and_bad_values(tmp_path):
+    from harness.scenario import ScenarioError, load_scenario
+
+    block = ('[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "svo-ls"]\nbackends = ["opencl"]\n'
+             'resolutions = [16]\nls_n = [1, 2]\nls_min_candidates = K\n')
+    path = tmp_path / "k.toml"
+    path.write_text(block.replace("K", "[0, 8]"))
+    keys = [c.key for c in load_scenario(path).cases]
+    # grid once (no N, no K); svo-ls for every N x K
+    assert len(keys) == 1 + 2 * 2 and sum(k.endswith("|k8") for k in keys) == 2
+    for bad in ('"many"', "[[1]]"):
+        path.write_text(block.replace("K", bad))
+        with pytest.raises(ScenarioError, match="ls_min_candidates"):
+            load_scenario(path)
+    # every shipped scenario parses and names registered structures only
+    for shipped in (Path(__file__).resolve().parent.parent / "scenarios").glob("*.toml"):
+        assert load_scenario(shipped).cases, shipped
