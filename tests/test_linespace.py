@@ -198,27 +198,29 @@ def test_random_rays_agree_with_embree(device, n):
     assert acc.agreement >= 0.9999, acc
 
 
-def test_min_candidates_keeps_hits_and_saves_memory(device):
+@pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
+def test_min_candidates_keeps_hits_and_saves_memory(device, structure):
+    """K: only cells (voxels, octree leaves) with more than K candidates get a Line Space."""
     scene = random_scene(300, size=0.08, seed=11)
     rays = random_rays(scene, 3000)
-    params = dict(resolution=(7, 4, 5), ls_n=2)
-    full = backends.build(device, "grid-ls", scene, BuildParams(**params))
+    params = dict(resolution=(8, 8, 8), ls_n=2)
+    full = backends.build(device, structure, scene, BuildParams(**params))
     full_hits = backends.trace(full, rays)
     full_bytes = full.memory_bytes
     full.release()
     for k in (4, 10**6):
-        part = backends.build(device, "grid-ls", scene, BuildParams(ls_min_candidates=k, **params))
+        part = backends.build(device, structure, scene, BuildParams(ls_min_candidates=k, **params))
         hits = backends.trace(part, rays)
         st = part.stats
         part.release()
         assert st["ls_min_candidates"] == k
-        assert st["linespace_skipped_voxels"] == st["non_empty_voxels"] - st["linespace_voxels"]
-        assert st["ls_offsets_bytes_saved"] == 4 * 240 * st["linespace_skipped_voxels"]
+        assert st["linespace_skipped_cells"] == st["candidate_cells"] - st["linespace_cells"]
+        assert st["ls_offsets_bytes_saved"] == 4 * 240 * st["linespace_skipped_cells"]
         if k == 4:
-            assert 0 < st["linespace_voxels"] < st["non_empty_voxels"]
+            assert 0 < st["linespace_cells"] < st["candidate_cells"]
             assert part.memory_bytes < full_bytes
-        else:  # no voxel gets a Line Space: a plain grid
-            assert st["linespace_voxels"] == 0 and st["shafts"] == 0
+        else:  # no cell gets a Line Space: the plain grid or octree
+            assert st["linespace_cells"] == 0 and st["shafts"] == 0
         same = accuracy(scene, hits, full_hits.prim_ids, full_hits.distances)
         assert same.disagreements == 0, same
 

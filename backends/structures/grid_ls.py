@@ -75,16 +75,12 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         # Every non-empty voxel reads its Line Space: the plain lists are never read again.
         device.release(buffers["voxel_tris"])
         buffers["voxel_tris"] = device.alloc("voxel_tris", 4)
-    skipped = non_empty - n_cells
     stats.update(ls.stats)
+    stats.update(linespace.selection_stats(ls, non_empty, k))
     stats.update({
         "non_empty_voxels": non_empty,
         "linespace_voxels": n_cells,
-        "linespace_skipped_voxels": skipped,
-        "ls_min_candidates": k,
-        # Shaft offsets the skipped voxels do not need (their candidates are not counted here:
-        # compare memory_bytes with a K = 0 build for the whole saving).
-        "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell,
+        "linespace_skipped_voxels": non_empty - n_cells,
         "bytes": {name: b.used for name, b in buffers.items()},
     })
     return buffers, u, TRACE_GRID_LS, stats

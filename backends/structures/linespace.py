@@ -125,6 +125,16 @@ def check_n(n: int) -> int:
     return n
 
 
+def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
+    """Stats of the K selection (ls_min_candidates) every Line Space structure records: of the
+    cells with candidates (voxels, octree leaves), how many got no Line Space, and the shaft
+    offsets they do not need (their candidates are not counted here: compare memory_bytes with
+    a K = 0 build for the whole saving)."""
+    skipped = candidate_cells - ls.stats["linespace_cells"]
+    return {"candidate_cells": candidate_cells, "linespace_skipped_cells": skipped,
+            "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell}
+
+
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
                      n: int) -> LineSpaces:
     """Line Spaces of all cells: count -> scan -> fill, all on the device."""

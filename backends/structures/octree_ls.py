@@ -109,16 +109,11 @@ class LineSpaceOctree:
         # The leaves' plain lists stay even when every leaf has a Line Space: a leaf that the walk
         # meets off its chord tests them instead of a shaft (oct_test_leaf in svo.h); they cost
         # 4 bytes per reference, a small part of the Line Spaces.
-        leaves = stats["leaves"]
-        skipped = leaves - n_cells
         stats.update(ls.stats)
+        stats.update(linespace.selection_stats(ls, stats["leaves"], k))
         stats.update({
             "linespace_leaves": n_cells,
-            "linespace_skipped_leaves": skipped,
-            "ls_min_candidates": k,
-            # Shaft offsets the skipped leaves do not need (their candidates are not counted
-            # here: compare memory_bytes with a K = 0 build for the whole saving).
-            "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell,
+            "linespace_skipped_leaves": stats["leaves"] - n_cells,
             "bytes": {name: b.used for name, b in buffers.items()},
         })
         uniforms = linespace.uniforms(geometry, n)
