@@ -264,3 +264,32 @@ def test_buffer_limit_raises_naming_it(device, monkeypatch):
     monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: 64 * 1024))
     with pytest.raises(DeviceLimitError, match=device.limit_name):
         backends.build(device, "grid-ls", scene, BuildParams(resolution=(3, 3, 2), ls_n=3))
+
+
+@pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
+@pytest.mark.parametrize("size,limit", [(0.2, 16384), (0.2, 8192), (0.15, 6144)])  # 2, 3, 4 buffers
+def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, structure, size, limit):
+    """A candidate list past the per-buffer limit is split over several buffers (up to 4) and
+    traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
+    scene = random_scene(150, size=size, seed=7)
+    rays = random_rays(scene, 190)  # every other buffer of the case stays under `limit`
+    params = BuildParams(resolution=(4, 4, 4), ls_n=1)
+    whole = backends.build(device, structure, scene, params)
+    whole_hits = backends.trace(whole, rays)
+    candidates = whole.stats["candidate_references"]
+    whole.release()
+    monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: limit))
+    split = backends.build(device, structure, scene, params)
+    chunks = split.stats["ls_tri_buffers"]
+    chunk_bytes = 4 << ((limit // 4).bit_length() - 1)  # a power-of-two number of entries
+    assert chunks == -(-4 * candidates // chunk_bytes) and 2 <= chunks <= 4, (candidates, chunks)
+    names = linespace.tri_chunk_names(chunks)
+    assert sum(split.buffers[n].used for n in names) == 4 * candidates
+    assert all(split.buffers[n].nbytes <= limit for n in names)
+    hits = backends.trace(split, rays, work=True)  # the profiling kernel binds one buffer more
+    split.release()
+    np.testing.assert_array_equal(hits.prim_ids, whole_hits.prim_ids)
+    np.testing.assert_array_equal(hits.distances, whole_hits.distances)
+    monkeypatch.setattr(linespace, "LS_MAX_TRI_CHUNKS", chunks - 1)
+    with pytest.raises(DeviceLimitError, match=f"more than {chunks - 1} buffers.*{device.limit_name}"):
+        backends.build(device, structure, scene, params)

@@ -83,7 +83,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         "linespace_skipped_voxels": non_empty - n_cells,
         "bytes": {name: b.used for name, b in buffers.items()},
     })
-    return buffers, u, TRACE_GRID_LS, stats
+    return buffers, u, ls.trace_spec(TRACE_GRID_LS), stats
 
 
 def _non_empty_voxels(device: Device, voxel_offsets, n_vox: int, u: dict) -> int:

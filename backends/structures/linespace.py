@@ -24,9 +24,17 @@ Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, o
 shaft (Sutherland-Hodgman, conservative margin LS_EPS); (3) exclusive scan; (4) fill, same test,
 writing in list order. Offsets are 32-bit: any case past 2^32 - 1 candidates or shafts raises
 DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never truncates.
+
+Candidate lists past the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2 GiB per
+buffer) are split over up to LS_MAX_TRI_CHUNKS buffers of a power-of-two number of entries
+(`ls_shaft_tris`, `ls_shaft_tris1`, ...; shaders/common/linespace.h: ls_candidate), so such a case
+runs wherever the device's memory holds it; `with_tri_chunks` gives a kernel spec the extra
+buffers. The offsets stay one buffer: a case whose offsets alone pass the limit still fails,
+naming it.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 
@@ -46,6 +54,9 @@ LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
 LS_EPS = 1e-3
 UINT32_MAX = 2**32 - 1
+# Most buffers one candidate list is split over. llvmpipe allows 16 storage buffers per shader:
+# the svo-ls trace binds 12 with the work counters, which leaves room for 3 more.
+LS_MAX_TRI_CHUNKS = 4
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS,
@@ -106,6 +117,42 @@ class LineSpaces:
     shafts_per_cell: int
     buffers: dict[str, DeviceBuffer]
     stats: dict = field(default_factory=dict)
+    tri_chunks: int = 1  # buffers the candidate list is split over (with_tri_chunks)
+    tri_shift: int = 32  # log2 of the entries per chunk
+
+    def trace_spec(self, spec: KernelSpec) -> KernelSpec:
+        return with_tri_chunks(spec, self.tri_chunks, self.tri_shift)
+
+
+def tri_chunk_names(n_chunks: int) -> list[str]:
+    return ["ls_shaft_tris"] + [f"ls_shaft_tris{i}" for i in range(1, n_chunks)]
+
+
+def with_tri_chunks(spec: KernelSpec, n_chunks: int, shift: int) -> KernelSpec:
+    """`spec` reading (or, in the fill, writing) a candidate list split over n_chunks buffers of
+    2^shift entries each; unchanged for one chunk."""
+    if n_chunks <= 1:
+        return spec
+    access = next(b.access for b in spec.buffers if b.name == "ls_shaft_tris")
+    extra = tuple(Buf(name, "uint", access) for name in tri_chunk_names(n_chunks)[1:])
+    return dataclasses.replace(spec, buffers=spec.buffers + extra).with_defines(
+        LS_TRI_CHUNKS=n_chunks, LS_TRI_SHIFT=shift)
+
+
+def _tri_chunking(device: Device, total: int) -> tuple[int, int]:
+    """(chunks, log2 entries per chunk) for `total` candidates: one chunk while the list fits
+    one buffer, else the fewest power-of-two chunks under the per-buffer limit."""
+    limit = device.max_buffer_bytes
+    if 4 * max(total, 1) <= limit:
+        return 1, 32
+    shift = (limit // 4).bit_length() - 1  # 2^shift entries fit one buffer
+    chunks = -(-total // (1 << shift))
+    if chunks > LS_MAX_TRI_CHUNKS:
+        raise DeviceLimitError(
+            f"buffer 'ls_shaft_tris' needs {4 * total / 2**20:.1f} MiB: more than {LS_MAX_TRI_CHUNKS} "
+            f"buffers of the {device.backend} driver's per-buffer limit of {limit / 2**20:.0f} MiB "
+            f"({device.limit_name})")
+    return chunks, shift
 
 
 def uniforms(geometry: GridGeometry, n: int) -> dict:
@@ -152,7 +199,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
                  "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
-                 "ls_exact_test": exact_test(device)}
+                 "ls_exact_test": exact_test(device), "ls_tri_buffers": 1}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)
     # Fail before the long count pass when the offsets alone cannot fit.
     device.check_size("ls_shaft_offsets", 4 * (n_shafts + 1))
@@ -184,10 +231,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 raise DeviceLimitError(
                     f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
                     "references: over the 32-bit candidate offsets")
-        tris = device.alloc("ls_shaft_tris", 4 * max(total, 1), zero=False)
-        kept.append(tris)
-        device.dispatch(_with_test(device, LS_FILL), n_shafts,
-                        dict(cell_bufs, ls_shaft_offsets=offsets, ls_shaft_tris=tris), u)
+        chunks, shift = _tri_chunking(device, total)
+        tris_bufs = {}
+        for i, name in enumerate(tri_chunk_names(chunks)):
+            entries = min(max(total, 1), (i + 1) << shift) - (i << shift) if chunks > 1 else max(total, 1)
+            tris_bufs[name] = device.alloc(name, 4 * entries, zero=False)
+            kept.append(tris_bufs[name])
+        fill = with_tri_chunks(_with_test(device, LS_FILL), chunks, shift)
+        device.dispatch(fill, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, **tris_bufs), u)
         non_empty = int(device.read(stats_buf, np.uint32, 1)[0])
     except Exception:
         for b in kept:
@@ -197,7 +248,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for b in temps:
             device.release(b)
     device.finish()
-    tris.used_bytes = 4 * total
+    for b in tris_bufs.values():
+        b.used_bytes = b.nbytes
+    if total == 0:
+        tris_bufs["ls_shaft_tris"].used_bytes = 0
     stats = {
         "ls_n": n,
         "shafts_per_cell": per_cell,
@@ -205,7 +259,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "shafts": n_shafts,
         "non_empty_shafts": non_empty,
         "candidate_references": total,
-        "ls_bytes": offsets.nbytes + tris.nbytes,
+        "ls_bytes": offsets.nbytes + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
+        "ls_tri_buffers": chunks,
     }
-    return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)
+    return LineSpaces(n, per_cell, dict(ls_shaft_offsets=offsets, **tris_bufs), stats, chunks, shift)

@@ -117,7 +117,7 @@ class LineSpaceOctree:
             "bytes": {name: b.used for name, b in buffers.items()},
         })
         uniforms = linespace.uniforms(geometry, n)
-        return buffers, uniforms, self.trace.with_defines(OCT_DEPTH=stats["depth"]), stats
+        return buffers, uniforms, ls.trace_spec(self.trace.with_defines(OCT_DEPTH=stats["depth"])), stats
 
 
 svo_ls = LineSpaceOctree("svo", TRACE_SVO_LS)

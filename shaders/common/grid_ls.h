@@ -99,7 +99,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                     uint cb = V(ls_shaft_offsets)[sid];
                     uint ce = V(ls_shaft_offsets)[sid + 1u];
                     for (uint i = cb; i < ce; ++i) {
-                        uint tri = V(ls_shaft_tris)[i];
+                        uint tri = ls_candidate(CTX_ARG i);
                         Triangle T = load_triangle(CTX_ARG tri);
                         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;

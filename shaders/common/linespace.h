@@ -17,8 +17,58 @@
 //   ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. ls_shaft_offsets[c * 15N^4 + s + 1]]
 // (one CSR offset per shaft: the count is the difference to the next offset, which halves the
 // thesis' count + offset pair).
+// The candidate list may be split over up to 4 buffers (LS_TRI_CHUNKS, set by linespace.py when
+// it passes the driver's per-buffer limit): candidate i lives in buffer i >> LS_TRI_SHIFT
+// (ls_shaft_tris, ls_shaft_tris1, ..) at i & (2^LS_TRI_SHIFT - 1). ls_candidate / ls_store_candidate
+// below are the only places that know.
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
+
+#ifndef LS_TRI_CHUNKS
+#define LS_TRI_CHUNKS 1
+#endif
+
+#ifdef HAS_ls_shaft_tris
+#ifndef LS_FILL  // the fill binds the list write-only
+// Candidate i of the (possibly split) list. The chunk test is uniform along a shaft's range
+// except where it crosses a chunk boundary, and costs a shift and a compare per candidate.
+INLINE uint ls_candidate(CTX_PARAM uint i) {
+#if LS_TRI_CHUNKS > 1
+    uint chunk = i >> LS_TRI_SHIFT;
+    uint j = i & ((1u << LS_TRI_SHIFT) - 1u);
+    if (chunk == 0u) return V(ls_shaft_tris)[j];
+#if LS_TRI_CHUNKS > 2
+    if (chunk == 2u) return V(ls_shaft_tris2)[j];
+#endif
+#if LS_TRI_CHUNKS > 3
+    if (chunk == 3u) return V(ls_shaft_tris3)[j];
+#endif
+    return V(ls_shaft_tris1)[j];
+#else
+    return V(ls_shaft_tris)[i];
+#endif
+}
+#endif
+
+#ifdef LS_FILL
+INLINE void ls_store_candidate(CTX_PARAM uint i, uint tri) {
+#if LS_TRI_CHUNKS > 1
+    uint chunk = i >> LS_TRI_SHIFT;
+    uint j = i & ((1u << LS_TRI_SHIFT) - 1u);
+    if (chunk == 0u) V(ls_shaft_tris)[j] = tri;
+    else if (chunk == 1u) V(ls_shaft_tris1)[j] = tri;
+#if LS_TRI_CHUNKS > 2
+    else if (chunk == 2u) V(ls_shaft_tris2)[j] = tri;
+#endif
+#if LS_TRI_CHUNKS > 3
+    else V(ls_shaft_tris3)[j] = tri;
+#endif
+#else
+    V(ls_shaft_tris)[i] = tri;
+#endif
+}
+#endif
+#endif
 
 #define LS_MAX_PLANES 8  // a hull of two face patches has at most 8 facets (brute force, N <= 5)
 #define LS_MAX_POLY 16    // 3 triangle corners + one vertex per clipping plane, with room
@@ -310,7 +360,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
         if (meets != 0) {
 #ifdef LS_FILL
-            V(ls_shaft_tris)[first + count] = tri;
+            ls_store_candidate(CTX_ARG first + count, tri);
 #endif
             count += 1u;
         }

@@ -214,7 +214,7 @@ INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 c
 #endif
     for (uint i = begin; i < end; ++i) {
 #ifdef HAS_ls_shaft_tris
-        uint tri = from_shaft != 0 ? V(ls_shaft_tris)[i] : V(voxel_tris)[i];
+        uint tri = from_shaft != 0 ? ls_candidate(CTX_ARG i) : V(voxel_tris)[i];
 #else
         uint tri = V(voxel_tris)[i];
 #endif
