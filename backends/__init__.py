@@ -17,6 +17,8 @@ from .structures import CUBIC_STRUCTURES, STRUCTURES
 from .structures.base import BuildParams, Built, GridGeometry, Hits, with_work_counters
 
 BACKENDS = ("glsl", "opencl")
+# Hit id of a ray whose traversal loops the driver cut short (shaders/common/scene.h).
+LOOP_CUT_PRIM = -2
 _devices: dict[str, Device] = {}
 
 
@@ -124,6 +126,12 @@ def trace(built: Built, rays, work: bool = False) -> Hits:
     if work:
         hits.work = d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4)
     _release(d, bufs, ("rays", "hit_prim", "hit_t", "work"))
+    cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
+    if cut:
+        raise DeviceLimitError(
+            f"the {d.backend} driver ended the traversal loops of {cut} of {rays.count} rays early: llvmpipe "
+            "stops a shader invocation's loops after 65535 iterations in all (LP_MAX_TGSI_LOOP_ITERATIONS); "
+            "these rays meet more candidates than that (a finer resolution or a Line Space cuts them)")
     return hits
 
 

@@ -78,8 +78,9 @@ def numbered(source: str) -> str:
 # --- Specs shared by every structure -------------------------------------------------------
 SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
+# loop_probe = 2: the driver loop-limit probe of every traversal (cut_hit, shaders/common/scene.h).
 GRID_UNIFORMS = (Uniform("grid_origin", "float4"), Uniform("grid_inv_voxel", "float4"),
-                 Uniform("grid_res", "int4"), Uniform("box_eps", "float"))
+                 Uniform("grid_res", "int4"), Uniform("box_eps", "float"), Uniform("loop_probe", "uint"))
 # Per-ray work counters (iterations, candidate tests, Line Space lookups, clock) for profiling
 # builds only: the plain kernels are compiled without COUNT_WORK and never touch this buffer.
 WORK_BUFFER = Buf("work", "uint4", "w")

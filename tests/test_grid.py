@@ -5,12 +5,12 @@ import numpy as np
 import pytest
 
 import backends
-from backends import BuildParams
+from backends import BuildParams, DeviceLimitError
 from backends.structures.base import BOX_EPS
 from harness import reference
 from harness.groundtruth import embree_closest
-from harness.rays import primary_rays
-from harness.scene import Camera
+from harness.rays import RaySet, primary_rays
+from harness.scene import Camera, Scene
 from harness.scenes import load_scene
 from harness.verify import compare
 
@@ -109,3 +109,33 @@ def test_work_counters_count_voxels_and_tests(device):
     iterations, tests = hits.work[0, 0], hits.work[0, 1]
     assert iterations == 8  # voxels 0..6 empty (7) + voxel 7 with the triangle
     assert tests >= 1 and tests <= 3  # the triangle, and the point-triangles of voxels 0 and 7
+
+
+@pytest.mark.parametrize("structure,n", [("grid", 0), ("svo", 0), ("esvo", 0), ("grid-ls", 1)])
+def test_driver_loop_limit_fails_the_case_naming_it(device, structure, n):
+    """llvmpipe ends all loops of a shader invocation after 65535 iterations in all
+    (LP_MAX_TGSI_LOOP_ITERATIONS), silently. 70,000 triangles in one cell make every ray pass
+    that: on llvmpipe the trace (or the Line Space build) must fail naming the limit, never
+    report misses; drivers without the limit must agree with Embree."""
+    rng = np.random.default_rng(2)
+    v = (rng.uniform(0.2, 0.8, (70000, 1, 3)) + rng.normal(0, 0.002, (70000, 3, 3))).reshape(-1, 3)
+    # One far triangle stretches the bounds, so the cloud stays in one cell of a 2^3 octree too.
+    v = np.vstack([v, [[9.0, 9.0, 9.0], [9.5, 9.0, 9.0], [9.0, 9.5, 9.0]]])
+    scene = Scene("dense-cell", v.astype(np.float32), np.arange(3 * 70001, dtype=np.uint32).reshape(-1, 3), "test")
+    o = np.tile(np.float32([[0.5, 0.5, -1.0]]), (64, 1)) + rng.uniform(-0.05, 0.05, (64, 3)).astype(np.float32)
+    rays = RaySet("into-the-cell", o, np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1)))
+    res = (2, 2, 2)
+    llvmpipe = "llvmpipe" in str(device.info().get("device", ""))
+    try:
+        built = backends.build(device, structure, scene, BuildParams(resolution=res, ls_n=n))
+        try:
+            hits = backends.trace(built, rays)
+        finally:
+            built.release()
+    except DeviceLimitError as exc:
+        assert llvmpipe and "LP_MAX_TGSI_LOOP_ITERATIONS" in str(exc), exc
+        return
+    assert not llvmpipe, "llvmpipe cut loops and nothing noticed"  # 70,000 tests in one cell
+    ref_p, ref_t = embree_closest(scene, rays)
+    acc = compare(hits.prim_ids, hits.distances, ref_p, ref_t, scene_extent=1.0)
+    assert acc.agreement == 1.0, acc

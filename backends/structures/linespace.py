@@ -239,7 +239,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             kept.append(tris_bufs[name])
         fill = with_tri_chunks(_with_test(device, LS_FILL), chunks, shift)
         device.dispatch(fill, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, **tris_bufs), u)
-        non_empty = int(device.read(stats_buf, np.uint32, 1)[0])
+        non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
+        if cut:
+            raise DeviceLimitError(
+                f"the {device.backend} driver ended the candidate loops of {cut} shafts early: llvmpipe "
+                "stops a shader invocation's loops after 65535 iterations in all "
+                "(LP_MAX_TGSI_LOOP_ITERATIONS); these cells hold too many triangles for one invocation")
     except Exception:
         for b in kept:
             device.release(b)

@@ -167,7 +167,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
 #ifdef COUNT_WORK
     V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
-    return best;
+    return cut_hit(CTX_ARG best);
 }
 
 INLINE void trace_esvo_kernel(CTX_PARAM uint ray) {

@@ -173,7 +173,7 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
 #ifdef COUNT_WORK
     V(work)[ray] = make_uint4(iterations, tests, 0u, CLOCK_ELAPSED(clock0));
 #endif
-    return best;
+    return cut_hit(CTX_ARG best);
 }
 
 INLINE void trace_grid_kernel(CTX_PARAM uint ray) {

@@ -138,7 +138,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
 #ifdef COUNT_WORK
     V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
-    return best;
+    return cut_hit(CTX_ARG best);
 }
 
 INLINE void trace_grid_ls_kernel(CTX_PARAM uint ray) {

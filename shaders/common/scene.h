@@ -37,6 +37,23 @@ INLINE Ray load_ray(CTX_PARAM uint ray) {
 
 INLINE Hit no_hit(float tmax) { Hit h; h.t = tmax; h.prim = -1; return h; }
 
+// llvmpipe (gallivm) ends every loop of a shader invocation, silently, once all its loops together
+// have run 65535 iterations (LP_MAX_TGSI_LOOP_ITERATIONS, one budget per SIMD group of lanes);
+// from then on every loop runs its body once. Dense scenes at low resolution pass that (BMW at
+// 32^3: 58k triangles in one voxel). So every traversal ends with a probe: a loop of
+// V(loop_probe) = 2 iterations (a uniform, so no compiler can count it). If it runs only once,
+// the budget was spent and the walk may have been cut: the ray is stored as LOOP_CUT_PRIM, and
+// backends.trace fails the case naming the limit instead of reporting misses. (A probe on the
+// loops' own exit conditions does not work: the compiler folds them, knowing no other exit.)
+// Drivers without such a limit always count 2.
+#define LOOP_CUT_PRIM -2
+INLINE Hit cut_hit(CTX_PARAM Hit best) {
+    uint runs = 0u;
+    for (uint k = 0u; k < V(loop_probe); ++k) runs += 1u;
+    if (runs != V(loop_probe)) best.prim = LOOP_CUT_PRIM;
+    return best;
+}
+
 // Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
 // gives the same ids whatever order the candidates arrive in (fill order is not deterministic).
 INLINE Hit closer(Hit best, float t, int prim, float tmin) {

@@ -334,7 +334,7 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
 #ifdef COUNT_WORK
     V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
 #endif
-    return best;
+    return cut_hit(CTX_ARG best);
 }
 
 INLINE void trace_svo_kernel(CTX_PARAM uint ray) {
