@@ -128,10 +128,8 @@ def trace(built: Built, rays, work: bool = False) -> Hits:
     _release(d, bufs, ("rays", "hit_prim", "hit_t", "work"))
     cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
     if cut:
-        raise DeviceLimitError(
-            f"the {d.backend} driver ended the traversal loops of {cut} of {rays.count} rays early: llvmpipe "
-            "stops a shader invocation's loops after 65535 iterations in all (LP_MAX_TGSI_LOOP_ITERATIONS); "
-            "these rays meet more candidates than that (a finer resolution or a Line Space cuts them)")
+        raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
+                                 "candidates than that (a finer resolution or a Line Space cuts them)")
     return hits
 
 

@@ -91,6 +91,13 @@ class Device(abc.ABC):
 
     limit_name = "max buffer size"
 
+    def loop_limit_error(self, what: str) -> DeviceLimitError:
+        """The driver cut a kernel's loops (the probe of shaders/common/scene.h); `what` names the
+        loops and why they ran long."""
+        return DeviceLimitError(
+            f"the {self.backend} driver cut short {what}; llvmpipe stops a shader invocation's loops "
+            "after 65535 iterations in all (LP_MAX_TGSI_LOOP_ITERATIONS)")
+
 
 def check_item_count(spec, n_items: int) -> None:
     """Kernels index items with a 32-bit gid and get n_items as a uint uniform."""

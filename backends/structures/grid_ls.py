@@ -44,9 +44,7 @@ def prepare(device: Device) -> None:
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
           params: BuildParams):
     n = linespace.check_n(params.ls_n or 1)
-    k = int(params.ls_min_candidates)
-    if k < 0:
-        raise ValueError(f"ls_min_candidates must be >= 0, got {k}")
+    k = linespace.check_min_candidates(params.ls_min_candidates)
     buffers, stats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
     u = dict(linespace.uniforms(geometry, n), ls_min_count=k)
     n_vox = geometry.voxel_count

@@ -165,6 +165,13 @@ def prepare(device: Device) -> None:
         device.program(spec) if device.backend == "glsl" else device.kernel(spec)
 
 
+def check_min_candidates(k: int) -> int:
+    k = int(k)
+    if k < 0:
+        raise ValueError(f"ls_min_candidates must be >= 0, got {k}")
+    return k
+
+
 def check_n(n: int) -> int:
     n = int(n)
     if n < 1:
@@ -234,17 +241,15 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         chunks, shift = _tri_chunking(device, total)
         tris_bufs = {}
         for i, name in enumerate(tri_chunk_names(chunks)):
-            entries = min(max(total, 1), (i + 1) << shift) - (i << shift) if chunks > 1 else max(total, 1)
+            entries = min(max(total, 1), (i + 1) << shift) - (i << shift)
             tris_bufs[name] = device.alloc(name, 4 * entries, zero=False)
             kept.append(tris_bufs[name])
         fill = with_tri_chunks(_with_test(device, LS_FILL), chunks, shift)
         device.dispatch(fill, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, **tris_bufs), u)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
-            raise DeviceLimitError(
-                f"the {device.backend} driver ended the candidate loops of {cut} shafts early: llvmpipe "
-                "stops a shader invocation's loops after 65535 iterations in all "
-                "(LP_MAX_TGSI_LOOP_ITERATIONS); these cells hold too many triangles for one invocation")
+            raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
+                                          "triangles for one invocation")
     except Exception:
         for b in kept:
             device.release(b)

@@ -67,9 +67,7 @@ class LineSpaceOctree:
               params: BuildParams):
         svo.octree_depth(params.resolution)  # ValueError before any work
         n = linespace.check_n(params.ls_n or 1)  # an LS structure always has a Line Space
-        k = int(params.ls_min_candidates)
-        if k < 0:
-            raise ValueError(f"ls_min_candidates must be >= 0, got {k}")
+        k = linespace.check_min_candidates(params.ls_min_candidates)
         made: dict[str, DeviceBuffer] = {}  # the hook's buffers, released here if anything fails
 
         def leaf_cells(pyramid: dict, leaves: DeviceBuffer, n_leaves: int) -> None:

@@ -368,7 +368,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifndef LS_FILL
     V(ls_shaft_counts)[gid] = count;
     if (count > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
-    if (cut_hit(CTX_ARG no_hit(0.0f)).prim == LOOP_CUT_PRIM) ATOMIC_ADD(V(ls_stats)[1], 1u);  // scene.h
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
 #endif
 }
 #endif  // triangle / shaft test and build

@@ -31,7 +31,8 @@ INLINE void oct_ls_cells_kernel(CTX_PARAM uint gid) {
         uint c = V(ls_ids)[leaf];
         if (V(ls_ids)[leaf + 1u] > c) {
             uint m = 32u * gid + b;
-            float x = F32(oct_compact3(m)), y = F32(oct_compact3(m >> 1)), z = F32(oct_compact3(m >> 2));
+            int3 v = oct_cell(m);
+            float x = F32(v.x), y = F32(v.y), z = F32(v.z);
             V(ls_cell_boxes)[2u * c] = make_float4(x, y, z, 0.0f);
             V(ls_cell_boxes)[2u * c + 1u] = make_float4(x + 1.0f, y + 1.0f, z + 1.0f, 0.0f);
             uint begin = V(leaves)[2u * leaf];

@@ -47,10 +47,14 @@ INLINE Hit no_hit(float tmax) { Hit h; h.t = tmax; h.prim = -1; return h; }
 // loops' own exit conditions does not work: the compiler folds them, knowing no other exit.)
 // Drivers without such a limit always count 2.
 #define LOOP_CUT_PRIM -2
-INLINE Hit cut_hit(CTX_PARAM Hit best) {
+INLINE int loops_intact(uint trips) {  // trips = V(loop_probe)
     uint runs = 0u;
-    for (uint k = 0u; k < V(loop_probe); ++k) runs += 1u;
-    if (runs != V(loop_probe)) best.prim = LOOP_CUT_PRIM;
+    for (uint k = 0u; k < trips; ++k) runs += 1u;
+    return runs == trips ? 1 : 0;
+}
+
+INLINE Hit cut_hit(CTX_PARAM Hit best) {
+    if (loops_intact(V(loop_probe)) == 0) best.prim = LOOP_CUT_PRIM;
     return best;
 }
 

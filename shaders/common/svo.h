@@ -40,6 +40,17 @@ INLINE uint oct_compact3(uint x) {
     return x;
 }
 
+// Cell coordinates of Morton code m (bit 3i = x, 3i+1 = y, 3i+2 = z).
+INLINE int3 oct_cell(uint m) {
+    return make_int3(I32(oct_compact3(m)), I32(oct_compact3(m >> 1)), I32(oct_compact3(m >> 2)));
+}
+
+// Linear voxel index (x fastest, as grid.h) of the leaf-level cell with Morton code m.
+INLINE uint oct_voxel(uint m, uint r) {
+    int3 c = oct_cell(m);
+    return U32(c.x) + r * (U32(c.y) + r * U32(c.z));
+}
+
 // Number of bits below `bit` that are set in `word`.
 INLINE uint oct_rank_in_word(uint word, uint bit) {
     return bit == 0u ? 0u : OCT_POPCOUNT(word & ((1u << bit) - 1u));
@@ -55,7 +66,7 @@ INLINE void oct_flag_leaves_kernel(CTX_PARAM uint gid) {
     for (uint b = 0u; b < 32u; ++b) {
         uint m = 32u * gid + b;
         if (m >= cells) break;
-        uint v = oct_compact3(m) + r * (oct_compact3(m >> 1) + r * oct_compact3(m >> 2));
+        uint v = oct_voxel(m, r);
         if (V(voxel_offsets)[v + 1u] > V(voxel_offsets)[v]) bits |= 1u << b;
     }
     V(oct_bits)[V(level_words)[depth] + gid] = bits;
@@ -147,7 +158,7 @@ INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
     for (uint b = 0u; b < 32u; ++b) {
         if (((word >> b) & 1u) == 0u) continue;
         uint m = 32u * gid + b;
-        uint v = oct_compact3(m) + r * (oct_compact3(m >> 1) + r * oct_compact3(m >> 2));
+        uint v = oct_voxel(m, r);
         uint begin = V(voxel_offsets)[v];
         V(leaves)[2u * leaf] = begin;
         V(leaves)[2u * leaf + 1u] = V(voxel_offsets)[v + 1u] - begin;
@@ -260,7 +271,7 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
     float2 span = ray_box(og, inv, dg, make_float3(0.0f, 0.0f, 0.0f), make_float3(fres, fres, fres));
     float t0 = max(span.x, tmin);
     float t1 = min(span.y, tmax);
-    float voxel_t = 1.0f / max(fabs(dg.x), max(fabs(dg.y), fabs(dg.z)));  // >= shortest voxel crossing
+    float voxel_t = gr.voxel_t;  // >= shortest voxel crossing
     uint iterations = 0u;
     uint tests = 0u;
     uint lookups = 0u;
