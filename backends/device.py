@@ -75,6 +75,23 @@ class Device(abc.ABC):
         one is the total, so buffer[i]..buffer[i+1] is item i's range); returns the total."""
 
     @abc.abstractmethod
+    def _scan_in_place(self, buf: DeviceBuffer, n: int) -> None:
+        """Exclusive prefix sum of the first n uint32 values of buf, in place."""
+
+    @abc.abstractmethod
+    def read_uint(self, buf: DeviceBuffer, index: int) -> int:
+        """One uint32 entry of buf."""
+
+    def scan_in_place(self, buf: DeviceBuffer, n: int) -> int:
+        """Exclusive prefix sum of buf's first n uint32 values in place (no second buffer: for
+        arrays near the memory limit); returns their sum modulo 2^32."""
+        if n <= 0:
+            return 0
+        last = self.read_uint(buf, n - 1)
+        self._scan_in_place(buf, n)
+        return (self.read_uint(buf, n - 1) + last) & 0xFFFFFFFF
+
+    @abc.abstractmethod
     def finish(self) -> None: ...
 
     @abc.abstractmethod

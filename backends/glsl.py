@@ -135,6 +135,11 @@ class GLSLDevice(Device):
     def program(self, spec: KernelSpec):
         prog = self._programs.get(spec.key)
         if prog is None:
+            limit = int(self.ctx.info["GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"])
+            if len(spec.buffers) > limit:  # the link would fail with a bare driver message
+                raise DeviceLimitError(
+                    f"{spec.name} binds {len(spec.buffers)} storage buffers, over the driver's {limit} "
+                    "per compute shader (GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS)")
             src = compute_source(spec)
             try:
                 prog = self.ctx.compute_shader(src)
@@ -245,9 +250,10 @@ class GLSLDevice(Device):
         out = self.alloc(name, 4 * (n + 1), zero=True)
         self.ctx.copy_buffer(out.handle, src.handle, size=4 * n)
         self._scan_in_place(out, n + 1)  # the extra zero entry becomes the total
-        total = int(self.read(out, np.uint32)[n]) if n < 2**20 else int(
-            np.frombuffer(out.handle.read(size=4, offset=4 * n), np.uint32)[0])
-        return out, total
+        return out, self.read_uint(out, n)
+
+    def read_uint(self, buf, index):
+        return int(np.frombuffer(buf.handle.read(size=4, offset=4 * int(index)), np.uint32)[0])
 
     # --- raster voxelization ---------------------------------------------------------------
     def raster_program(self, spec: KernelSpec):

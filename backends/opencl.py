@@ -66,6 +66,9 @@ class OpenCLDevice(Device):
         self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
         self._programs: dict = {}
         self._scan = None
+        # Bytes of the live buffers: PoCL hands out buffers past CL_DEVICE_GLOBAL_MEM_SIZE and
+        # fails (or swaps) later, so alloc checks the sum itself and names the limit.
+        self._live: dict[int, int] = {}
 
     def _pick_device(self):
         cl = self.cl
@@ -126,13 +129,30 @@ class OpenCLDevice(Device):
         cl = self.cl
         nbytes = max(int(nbytes), 4)
         self.check_size(name, nbytes)
+        self._check_global(name, nbytes)
         try:
             buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
             if zero:
                 cl.enqueue_fill_buffer(self.queue, buf, np.uint32(0), 0, nbytes)
         except cl.Error as exc:
             raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
-        return DeviceBuffer(name, nbytes, buf)
+        return self._track(DeviceBuffer(name, nbytes, buf))
+
+    @property
+    def global_mem_bytes(self) -> int:
+        return int(self.device.global_mem_size)
+
+    def _check_global(self, name: str, nbytes: int) -> None:
+        live = sum(self._live.values())
+        limit = self.global_mem_bytes
+        if live + nbytes > limit:
+            raise DeviceLimitError(
+                f"buffer '{name}' needs {nbytes / 2**20:.1f} MiB with {live / 2**20:.1f} MiB in use: over "
+                f"the device's {limit / 2**20:.0f} MiB of global memory (CL_DEVICE_GLOBAL_MEM_SIZE)")
+
+    def _track(self, buf: DeviceBuffer) -> DeviceBuffer:
+        self._live[id(buf.handle)] = buf.nbytes
+        return buf
 
     def upload(self, name, array):
         cl = self.cl
@@ -140,11 +160,12 @@ class OpenCLDevice(Device):
         if data.nbytes == 0:
             return self.alloc(name, 4)
         self.check_size(name, data.nbytes)
+        self._check_global(name, data.nbytes)
         try:
             buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
         except cl.Error as exc:
             raise DeviceLimitError(f"allocating buffer '{name}' of {data.nbytes} bytes failed: {exc}") from exc
-        return DeviceBuffer(name, data.nbytes, buf)
+        return self._track(DeviceBuffer(name, data.nbytes, buf))
 
     def read(self, buf, dtype, count=None):
         dtype = np.dtype(dtype)
@@ -157,6 +178,7 @@ class OpenCLDevice(Device):
         self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes)
 
     def release(self, buf):
+        self._live.pop(id(buf.handle), None)
         buf.handle.release()
 
     # --- kernels ---------------------------------------------------------------------------
@@ -218,15 +240,20 @@ class OpenCLDevice(Device):
 
     # --- prefix sum ------------------------------------------------------------------------
     def exclusive_scan(self, src, n, name):
+        out = self.alloc(name, 4 * (n + 1), zero=True)
+        self.cl.enqueue_copy(self.queue, out.handle, src.handle, byte_count=4 * n)
+        self._scan_in_place(out, n + 1)  # the extra zero entry becomes the total
+        return out, self.read_uint(out, n)
+
+    def _scan_in_place(self, buf, n):
         import pyopencl.array as cla
         from pyopencl.scan import ExclusiveScanKernel
 
         if self._scan is None:
             self._scan = ExclusiveScanKernel(self.ctx, np.uint32, "a+b", "0")
-        out = self.alloc(name, 4 * (n + 1), zero=True)
-        self.cl.enqueue_copy(self.queue, out.handle, src.handle, byte_count=4 * n)
-        arr = cla.Array(self.queue, (n + 1,), np.uint32, data=out.handle)
-        self._scan(arr, queue=self.queue)  # in place; the extra zero entry becomes the total
-        total = np.empty(1, np.uint32)
-        self.cl.enqueue_copy(self.queue, total, out.handle, src_offset=4 * n, is_blocking=True)
-        return out, int(total[0])
+        self._scan(cla.Array(self.queue, (n,), np.uint32, data=buf.handle), queue=self.queue)
+
+    def read_uint(self, buf, index):
+        out = np.empty(1, np.uint32)
+        self.cl.enqueue_copy(self.queue, out, buf.handle, src_offset=4 * int(index), is_blocking=True)
+        return int(out[0])

@@ -96,6 +96,39 @@ def test_opencl_allocation_limit():
     _still_works(dev)
 
 
+def test_glsl_storage_block_count_limit(monkeypatch):
+    """A kernel binding more storage buffers than a compute shader may (llvmpipe: 16; e.g. a Line
+    Space whose arrays are split into many buffers) fails naming the limit, before the driver's
+    link error, and the device stays usable."""
+    from backends.structures import linespace
+
+    dev = backends.get_device("glsl")
+    limit = int(dev.ctx.info["GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"])
+    split_array = linespace.split_array
+    monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", 1000)
+    monkeypatch.setattr(linespace, "split_array", lambda d, base, macro, entries: split_array(
+        d, base, macro, entries, limit=256))  # 64 entries per buffer
+    with pytest.raises(DeviceLimitError, match=f"over the driver's {limit} .*GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"):
+        backends.build(dev, "svo-ls", load_scene("cornell"), BuildParams(resolution=(4, 4, 4), ls_n=1))
+    monkeypatch.undo()
+    _still_works(dev)
+
+
+def test_opencl_global_memory_limit(monkeypatch):
+    """PoCL hands out buffers past its global memory; the backend counts live buffers and fails
+    the allocation that would pass CL_DEVICE_GLOBAL_MEM_SIZE, naming it."""
+    dev = backends.get_device("opencl")
+    held = dev.alloc("held", 1 << 20)
+    live = sum(dev._live.values())
+    monkeypatch.setattr(type(dev), "global_mem_bytes", property(lambda self: live + (1 << 20)))
+    with pytest.raises(DeviceLimitError, match="CL_DEVICE_GLOBAL_MEM_SIZE"):
+        dev.alloc("more", (1 << 20) + 4)
+    dev.release(held)
+    dev.release(dev.alloc("more", (1 << 20) + 4))  # fits once `held` is gone
+    monkeypatch.undo()
+    _still_works(dev)
+
+
 def test_32bit_reference_overflow(monkeypatch, device):
     """More than 2^32 - 1 references cannot be addressed by the uint offsets: refused, not
     wrapped (simulated: the scan reports a total past 32 bits)."""

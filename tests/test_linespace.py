@@ -246,7 +246,7 @@ def test_wrapped_offsets_are_detected(device):
     for values, wrapped in (([0, 5, 9, 9, 4000000000, 4000000001], 0), ([0, 5, 4294967290, 3, 8], 1)):
         offs = device.upload("offs", np.array(values, np.uint32))
         flag = device.alloc("flag", 4)
-        device.dispatch(linespace.LS_CHECK, len(values) - 1, {"ls_check_offsets": offs, "ls_check_flag": flag}, u)
+        device.dispatch(linespace.LS_CHECK, len(values) - 1, {"ls_shaft_offsets": offs, "ls_check_flag": flag}, u)
         assert (device.read(flag, np.uint32, 1)[0] > 0) == bool(wrapped)
         device.release(offs)
         device.release(flag)
@@ -283,13 +283,46 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     chunks = split.stats["ls_tri_buffers"]
     chunk_bytes = 4 << ((limit // 4).bit_length() - 1)  # a power-of-two number of entries
     assert chunks == -(-4 * candidates // chunk_bytes) and 2 <= chunks <= 4, (candidates, chunks)
-    names = linespace.tri_chunk_names(chunks)
+    names = ["ls_shaft_tris"] + [f"ls_shaft_tris{i}" for i in range(1, chunks)]
     assert sum(split.buffers[n].used for n in names) == 4 * candidates
     assert all(split.buffers[n].nbytes <= limit for n in names)
     hits = backends.trace(split, rays, work=True)  # the profiling kernel binds one buffer more
     split.release()
     np.testing.assert_array_equal(hits.prim_ids, whole_hits.prim_ids)
     np.testing.assert_array_equal(hits.distances, whole_hits.distances)
-    monkeypatch.setattr(linespace, "LS_MAX_TRI_CHUNKS", chunks - 1)
+    monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", chunks - 1)
     with pytest.raises(DeviceLimitError, match=f"more than {chunks - 1} buffers.*{device.limit_name}"):
+        backends.build(device, structure, scene, params)
+
+
+@pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
+@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 16384, 3), (150, 0.2, 16384, 4)])
+def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structure, n_tris, size, limit, chunks):
+    """Shaft offsets past the per-buffer limit are split too (the cells the thesis could not run,
+    Sponza N=3 at 256^3, have 2.5 GiB of offsets): the chunk-wise scan with carries gives the
+    whole build's offsets entry for entry, and the split build traces exactly as the whole one.
+    Only the offsets get the small limit here, so the candidates stay one buffer."""
+    scene = random_scene(n_tris, size=size, seed=7)  # 61 or 42 cells with candidates at 4^3
+    rays = random_rays(scene, 190)
+    params = BuildParams(resolution=(4, 4, 4), ls_n=2)
+    whole = backends.build(device, structure, scene, params)
+    whole_hits = backends.trace(whole, rays)
+    whole_offsets = device.read(whole.buffers["ls_shaft_offsets"], np.uint32)
+    whole.release()
+    split_array = linespace.split_array
+    monkeypatch.setattr(linespace, "split_array", lambda d, base, macro, entries: split_array(
+        d, base, macro, entries, limit=limit if base == "ls_shaft_offsets" else None))
+    split = backends.build(device, structure, scene, params)
+    assert split.stats["ls_offset_buffers"] == chunks == -(-4 * len(whole_offsets) // limit)
+    assert split.stats["ls_tri_buffers"] == 1
+    names = ["ls_shaft_offsets"] + [f"ls_shaft_offsets{i}" for i in range(1, chunks)]
+    assert all(split.buffers[n].nbytes <= limit for n in names)
+    np.testing.assert_array_equal(np.concatenate([device.read(split.buffers[n], np.uint32) for n in names]),
+                                  whole_offsets)
+    hits = backends.trace(split, rays, work=True)
+    split.release()
+    np.testing.assert_array_equal(hits.prim_ids, whole_hits.prim_ids)
+    np.testing.assert_array_equal(hits.distances, whole_hits.distances)
+    monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", chunks - 1)
+    with pytest.raises(DeviceLimitError, match="buffer 'ls_shaft_offsets' needs .* more than"):
         backends.build(device, structure, scene, params)

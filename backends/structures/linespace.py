@@ -21,16 +21,17 @@ ray's entry and exit face and patch in cell-local coordinates.
 
 Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
 (2) count: one work item per (cell, shaft) clips each of the cell's triangles against the
-shaft (Sutherland-Hodgman, conservative margin LS_EPS); (3) exclusive scan; (4) fill, same test,
-writing in list order. Offsets are 32-bit: any case past 2^32 - 1 candidates or shafts raises
-DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never truncates.
+shaft (Sutherland-Hodgman, conservative margin LS_EPS) and writes the count where the shaft's
+offset goes; (3) exclusive scan of that array in place; (4) fill, same test, writing in list order.
 
-Candidate lists past the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2 GiB per
-buffer) are split over up to LS_MAX_TRI_CHUNKS buffers of a power-of-two number of entries
-(`ls_shaft_tris`, `ls_shaft_tris1`, ...; shaders/common/linespace.h: ls_candidate), so such a case
-runs wherever the device's memory holds it; `with_tri_chunks` gives a kernel spec the extra
-buffers. The offsets stay one buffer: a case whose offsets alone pass the limit still fails,
-naming it.
+Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2 GiB per
+buffer): each is then split over up to LS_MAX_CHUNKS buffers of a power-of-two number of entries
+(SplitArray: `ls_shaft_offsets`, `ls_shaft_offsets1`, ..., `ls_shaft_tris`, `ls_shaft_tris1`, ...;
+kernels read them through the macros of shaders/common/linespace.h), so such a case runs wherever
+the device's memory holds it. The offset array is scanned chunk by chunk with the earlier chunks'
+total added (LS_CARRY). Offsets and shaft indices are 32-bit values: a case past 2^32 - 1
+candidates or shafts (16 GiB of candidates or offsets) raises DeviceLimitError naming the limit
+(thesis 6.3 saw such cases fail), never truncates.
 """
 from __future__ import annotations
 
@@ -54,18 +55,21 @@ LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
 LS_EPS = 1e-3
 UINT32_MAX = 2**32 - 1
-# Most buffers one candidate list is split over. llvmpipe allows 16 storage buffers per shader:
-# the svo-ls trace binds 12 with the work counters, which leaves room for 3 more.
-LS_MAX_TRI_CHUNKS = 4
+# Most buffers the shaft offsets or the candidate list is split over. llvmpipe allows 16 storage
+# buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
+# PoCL's 7 GiB of global memory holds fewer than 4 buffers of its 2 GiB limit.
+LS_MAX_CHUNKS = 4
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS,
     defines=(("LS_PLANES_KERNEL", "1"),))
 _CELL_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_cell_boxes", "float4", "r"),
                  Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"))
+# The count pass writes each shaft's count where its offset will be; the scan turns them into
+# offsets in place (no second array of the offsets' size).
 LS_COUNT = KernelSpec(
     "ls_count", LS_HEADERS, "ls_shaft_kernel",
-    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_counts", "uint", "w"), Buf("ls_stats", "uint", "rw")),
+    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
     LS_UNIFORMS)
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
@@ -73,9 +77,13 @@ LS_FILL = KernelSpec(
     LS_UNIFORMS, defines=(("LS_FILL", "1"),))
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
-    (Buf("ls_check_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
+    (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
+# A split offset array is scanned chunk by chunk; this adds the earlier chunks' total.
+LS_CARRY = KernelSpec(
+    "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
+    (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK)
+BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
@@ -111,48 +119,92 @@ class Cells:
     references: int  # sum (or an upper bound) of the cells' list lengths
 
 
+@dataclass(frozen=True)
+class SplitArray:
+    """A uint array of `entries` values stored over `chunks` buffers of 2^shift entries each
+    (the last one shorter): entry i lives in buffer i >> shift at i & (2^shift - 1). One buffer
+    while the array fits the driver's per-buffer limit; otherwise the fewest power-of-two chunks
+    under it, so a Line Space past the limit runs wherever the device's memory holds it.
+
+    Kernels reach the array only through two macros (defaults for one buffer in linespace.h):
+    `<macro>(i)` reads entry i, `<macro>_STORE(i, v)` writes it. `defines()` gives the split
+    versions, a chain of chunk compares; the chunk is uniform along a shaft's range except where
+    the range crosses a boundary, so the compare costs a shift and a branch per access."""
+    base: str  # the first buffer's name; the others are base1, base2, ...
+    macro: str
+    entries: int
+    chunks: int = 1
+    shift: int = 32
+
+    @property
+    def names(self) -> list[str]:
+        return [self.base] + [f"{self.base}{i}" for i in range(1, self.chunks)]
+
+    def chunk_entries(self, i: int) -> int:
+        return min(self.entries, (i + 1) << self.shift) - (i << self.shift)
+
+    def defines(self) -> tuple[tuple[str, str], ...]:
+        if self.chunks <= 1:
+            return ()
+        mask = f"((i) & {(1 << self.shift) - 1}u)"
+        read = f"V({self.names[-1]})[{mask}]"
+        for k in range(self.chunks - 2, -1, -1):
+            read = f"(((i) >> {self.shift}u) == {k}u ? V({self.names[k]})[{mask}] : {read})"
+        store = " else ".join(
+            (f"if (ls_chunk_ == {k}u) " if k < self.chunks - 1 else "") + f"V({name})[ls_entry_] = (v);"
+            for k, name in enumerate(self.names))
+        return ((f"{self.macro}(i)", read),
+                (f"{self.macro}_STORE(i, v)",
+                 f"{{ uint ls_chunk_ = (i) >> {self.shift}u; uint ls_entry_ = {mask}; {store} }}"))
+
+    def bind(self, spec: KernelSpec) -> KernelSpec:
+        """`spec` with the array's further buffers (same access as the first) and macros."""
+        if self.chunks <= 1 or not any(b.name == self.base for b in spec.buffers):
+            return spec
+        access = next(b.access for b in spec.buffers if b.name == self.base)
+        extra = tuple(Buf(name, "uint", access) for name in self.names[1:])
+        return dataclasses.replace(spec, buffers=spec.buffers + extra, defines=spec.defines + self.defines())
+
+    def alloc(self, device: Device, zero: bool) -> dict[str, DeviceBuffer]:
+        made: dict[str, DeviceBuffer] = {}
+        try:
+            for i, name in enumerate(self.names):
+                made[name] = device.alloc(name, 4 * self.chunk_entries(i), zero=zero)
+        except Exception:
+            for b in made.values():
+                device.release(b)
+            raise
+        return made
+
+
+def split_array(device: Device, base: str, macro: str, entries: int, limit: int | None = None) -> SplitArray:
+    """`entries` values in as few buffers as `limit` bytes each (the driver's) allow."""
+    limit = device.max_buffer_bytes if limit is None else int(limit)
+    entries = max(int(entries), 1)
+    if 4 * entries <= limit:
+        return SplitArray(base, macro, entries)
+    shift = (limit // 4).bit_length() - 1  # 2^shift entries fit one buffer
+    chunks = -(-entries // (1 << shift))
+    if chunks > LS_MAX_CHUNKS:
+        raise DeviceLimitError(
+            f"buffer '{base}' needs {4 * entries / 2**20:.1f} MiB: more than {LS_MAX_CHUNKS} "
+            f"buffers of the {device.backend} driver's per-buffer limit of {limit / 2**20:.0f} MiB "
+            f"({device.limit_name})")
+    return SplitArray(base, macro, entries, chunks, shift)
+
+
 @dataclass
 class LineSpaces:
     n: int
     shafts_per_cell: int
     buffers: dict[str, DeviceBuffer]
     stats: dict = field(default_factory=dict)
-    tri_chunks: int = 1  # buffers the candidate list is split over (with_tri_chunks)
-    tri_shift: int = 32  # log2 of the entries per chunk
+    splits: tuple[SplitArray, ...] = ()  # offsets and candidates, where split over buffers
 
     def trace_spec(self, spec: KernelSpec) -> KernelSpec:
-        return with_tri_chunks(spec, self.tri_chunks, self.tri_shift)
-
-
-def tri_chunk_names(n_chunks: int) -> list[str]:
-    return ["ls_shaft_tris"] + [f"ls_shaft_tris{i}" for i in range(1, n_chunks)]
-
-
-def with_tri_chunks(spec: KernelSpec, n_chunks: int, shift: int) -> KernelSpec:
-    """`spec` reading (or, in the fill, writing) a candidate list split over n_chunks buffers of
-    2^shift entries each; unchanged for one chunk."""
-    if n_chunks <= 1:
+        for split in self.splits:
+            spec = split.bind(spec)
         return spec
-    access = next(b.access for b in spec.buffers if b.name == "ls_shaft_tris")
-    extra = tuple(Buf(name, "uint", access) for name in tri_chunk_names(n_chunks)[1:])
-    return dataclasses.replace(spec, buffers=spec.buffers + extra).with_defines(
-        LS_TRI_CHUNKS=n_chunks, LS_TRI_SHIFT=shift)
-
-
-def _tri_chunking(device: Device, total: int) -> tuple[int, int]:
-    """(chunks, log2 entries per chunk) for `total` candidates: one chunk while the list fits
-    one buffer, else the fewest power-of-two chunks under the per-buffer limit."""
-    limit = device.max_buffer_bytes
-    if 4 * max(total, 1) <= limit:
-        return 1, 32
-    shift = (limit // 4).bit_length() - 1  # 2^shift entries fit one buffer
-    chunks = -(-total // (1 << shift))
-    if chunks > LS_MAX_TRI_CHUNKS:
-        raise DeviceLimitError(
-            f"buffer 'ls_shaft_tris' needs {4 * total / 2**20:.1f} MiB: more than {LS_MAX_TRI_CHUNKS} "
-            f"buffers of the {device.backend} driver's per-buffer limit of {limit / 2**20:.0f} MiB "
-            f"({device.limit_name})")
-    return chunks, shift
 
 
 def uniforms(geometry: GridGeometry, n: int) -> dict:
@@ -206,10 +258,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
                  "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
-                 "ls_exact_test": exact_test(device), "ls_tri_buffers": 1}
+                 "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)
-    # Fail before the long count pass when the offsets alone cannot fit.
-    device.check_size("ls_shaft_offsets", 4 * (n_shafts + 1))
+    # Split (or fail) before the long count pass when the offsets alone pass the limit.
+    offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1)
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
     try:
@@ -220,32 +272,26 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.append(stats_buf)
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes,
                          ls_cell_ranges=cells.ranges, ls_cell_tris=cells.tris)
-        counts = device.alloc("ls_shaft_counts", 4 * n_shafts)
-        temps.append(counts)
-        device.dispatch(_with_test(device, LS_COUNT), n_shafts,
-                        dict(cell_bufs, ls_shaft_counts=counts, ls_stats=stats_buf), u)
-        offsets, total = device.exclusive_scan(counts, n_shafts, "ls_shaft_offsets")
-        kept.append(offsets)
-        temps.remove(counts)
-        device.release(counts)
+        offset_bufs = offsets.alloc(device, zero=True)  # entry n_shafts stays 0: it becomes the total
+        kept.extend(offset_bufs.values())
+        device.dispatch(offsets.bind(_with_test(device, LS_COUNT)), n_shafts,
+                        dict(cell_bufs, ls_stats=stats_buf, **offset_bufs), u)
+        total = _scan_split(device, offsets, offset_bufs, u)
         # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
         # for the wrap (a decreasing offset) on the device before trusting `total`.
         if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
             flag = device.alloc("ls_check_flag", 4)
             temps.append(flag)
-            device.dispatch(LS_CHECK, n_shafts, {"ls_check_offsets": offsets, "ls_check_flag": flag}, u)
+            device.dispatch(offsets.bind(LS_CHECK), n_shafts, dict(offset_bufs, ls_check_flag=flag), u)
             if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
                 raise DeviceLimitError(
                     f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
                     "references: over the 32-bit candidate offsets")
-        chunks, shift = _tri_chunking(device, total)
-        tris_bufs = {}
-        for i, name in enumerate(tri_chunk_names(chunks)):
-            entries = min(max(total, 1), (i + 1) << shift) - (i << shift)
-            tris_bufs[name] = device.alloc(name, 4 * entries, zero=False)
-            kept.append(tris_bufs[name])
-        fill = with_tri_chunks(_with_test(device, LS_FILL), chunks, shift)
-        device.dispatch(fill, n_shafts, dict(cell_bufs, ls_shaft_offsets=offsets, **tris_bufs), u)
+        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", total)
+        tris_bufs = candidates.alloc(device, zero=False)
+        kept.extend(tris_bufs.values())
+        fill = candidates.bind(offsets.bind(_with_test(device, LS_FILL)))
+        device.dispatch(fill, n_shafts, dict(cell_bufs, **offset_bufs, **tris_bufs), u)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
@@ -269,8 +315,24 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "shafts": n_shafts,
         "non_empty_shafts": non_empty,
         "candidate_references": total,
-        "ls_bytes": offsets.nbytes + sum(b.nbytes for b in tris_bufs.values()),
+        "ls_bytes": sum(b.nbytes for b in offset_bufs.values()) + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
-        "ls_tri_buffers": chunks,
+        "ls_offset_buffers": offsets.chunks,
+        "ls_tri_buffers": candidates.chunks,
     }
-    return LineSpaces(n, per_cell, dict(ls_shaft_offsets=offsets, **tris_bufs), stats, chunks, shift)
+    splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
+    return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits)
+
+
+def _scan_split(device: Device, array: SplitArray, bufs: dict[str, DeviceBuffer], u: dict) -> int:
+    """Exclusive prefix sum over a split array, in place: each chunk on its own, then the sum of
+    the chunks before it added (LS_CARRY). Returns the total (which may pass 32 bits: the caller
+    checks)."""
+    carry = 0
+    for i, name in enumerate(array.names):
+        entries = array.chunk_entries(i)
+        chunk_total = device.scan_in_place(bufs[name], entries)
+        if carry:
+            device.dispatch(LS_CARRY, entries, {"ls_carry_chunk": bufs[name]}, dict(u, ls_carry=carry & UINT32_MAX))
+        carry += chunk_total
+    return carry

@@ -96,10 +96,10 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                     have_uv_out = 1;
                     uint sid = ls * shafts + ls_shaft_id(n, face_in, uv_in, face_out, uv_out);
                     lookups += 1u;
-                    uint cb = V(ls_shaft_offsets)[sid];
-                    uint ce = V(ls_shaft_offsets)[sid + 1u];
+                    uint cb = LS_OFFSET(sid);
+                    uint ce = LS_OFFSET(sid + 1u);
                     for (uint i = cb; i < ce; ++i) {
-                        uint tri = ls_candidate(CTX_ARG i);
+                        uint tri = LS_CANDIDATE(i);
                         Triangle T = load_triangle(CTX_ARG tri);
                         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;

@@ -17,58 +17,23 @@
 //   ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. ls_shaft_offsets[c * 15N^4 + s + 1]]
 // (one CSR offset per shaft: the count is the difference to the next offset, which halves the
 // thesis' count + offset pair).
-// The candidate list may be split over up to 4 buffers (LS_TRI_CHUNKS, set by linespace.py when
-// it passes the driver's per-buffer limit): candidate i lives in buffer i >> LS_TRI_SHIFT
-// (ls_shaft_tris, ls_shaft_tris1, ..) at i & (2^LS_TRI_SHIFT - 1). ls_candidate / ls_store_candidate
-// below are the only places that know.
+// Both arrays may be split over up to 4 buffers each (linespace.py: SplitArray, when they pass the
+// driver's per-buffer limit). Kernels reach them only through these macros; the defaults below
+// are the one-buffer case, split kernels get generated ones (a chain of chunk compares over
+// ls_shaft_offsets, ls_shaft_offsets1, ..). A macro names its buffers only where it is used, so a
+// kernel that binds an array write-only (count: offsets; fill: candidates) never reads it.
+//   LS_OFFSET(i), LS_OFFSET_STORE(i, v)       entry i of the shaft offsets
+//   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) candidate i
+#ifndef LS_OFFSET
+#define LS_OFFSET(i) V(ls_shaft_offsets)[i]
+#define LS_OFFSET_STORE(i, v) V(ls_shaft_offsets)[i] = (v)
+#endif
+#ifndef LS_CANDIDATE
+#define LS_CANDIDATE(i) V(ls_shaft_tris)[i]
+#define LS_CANDIDATE_STORE(i, v) V(ls_shaft_tris)[i] = (v)
+#endif
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
-
-#ifndef LS_TRI_CHUNKS
-#define LS_TRI_CHUNKS 1
-#endif
-
-#ifdef HAS_ls_shaft_tris
-#ifndef LS_FILL  // the fill binds the list write-only
-// Candidate i of the (possibly split) list. The chunk test is uniform along a shaft's range
-// except where it crosses a chunk boundary, and costs a shift and a compare per candidate.
-INLINE uint ls_candidate(CTX_PARAM uint i) {
-#if LS_TRI_CHUNKS > 1
-    uint chunk = i >> LS_TRI_SHIFT;
-    uint j = i & ((1u << LS_TRI_SHIFT) - 1u);
-    if (chunk == 0u) return V(ls_shaft_tris)[j];
-#if LS_TRI_CHUNKS > 2
-    if (chunk == 2u) return V(ls_shaft_tris2)[j];
-#endif
-#if LS_TRI_CHUNKS > 3
-    if (chunk == 3u) return V(ls_shaft_tris3)[j];
-#endif
-    return V(ls_shaft_tris1)[j];
-#else
-    return V(ls_shaft_tris)[i];
-#endif
-}
-#endif
-
-#ifdef LS_FILL
-INLINE void ls_store_candidate(CTX_PARAM uint i, uint tri) {
-#if LS_TRI_CHUNKS > 1
-    uint chunk = i >> LS_TRI_SHIFT;
-    uint j = i & ((1u << LS_TRI_SHIFT) - 1u);
-    if (chunk == 0u) V(ls_shaft_tris)[j] = tri;
-    else if (chunk == 1u) V(ls_shaft_tris1)[j] = tri;
-#if LS_TRI_CHUNKS > 2
-    else if (chunk == 2u) V(ls_shaft_tris2)[j] = tri;
-#endif
-#if LS_TRI_CHUNKS > 3
-    else V(ls_shaft_tris3)[j] = tri;
-#endif
-#else
-    V(ls_shaft_tris)[i] = tri;
-#endif
-}
-#endif
-#endif
 
 #define LS_MAX_PLANES 8  // a hull of two face patches has at most 8 facets (brute force, N <= 5)
 #define LS_MAX_POLY 16    // 3 triangle corners + one vertex per clipping plane, with room
@@ -337,7 +302,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
 #ifdef LS_FILL
-    uint first = V(ls_shaft_offsets)[gid];
+    uint first = LS_OFFSET(gid);
 #endif
     uint count = 0u;
     for (uint i = begin; i < end; ++i) {
@@ -360,24 +325,31 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
         if (meets != 0) {
 #ifdef LS_FILL
-            ls_store_candidate(CTX_ARG first + count, tri);
+            LS_CANDIDATE_STORE(first + count, tri);
 #endif
             count += 1u;
         }
     }
 #ifndef LS_FILL
-    V(ls_shaft_counts)[gid] = count;
+    LS_OFFSET_STORE(gid, count);  // the count, until the scan makes it the offset
     if (count > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
 #endif
 }
 #endif  // triangle / shaft test and build
 
-#ifdef HAS_ls_check_offsets
+#ifdef HAS_ls_check_flag
 // ---- 32-bit overflow check of the shaft offsets ---------------------------------------------
 // Each shaft adds fewer than 2^32 candidates, so a total past 2^32 wraps the 32-bit prefix sum
 // and shows as a decrease somewhere; flag it instead of building a truncated list (thesis 6.3).
 INLINE void ls_check_kernel(CTX_PARAM uint gid) {
-    if (V(ls_check_offsets)[gid + 1u] < V(ls_check_offsets)[gid]) ATOMIC_ADD(V(ls_check_flag)[0], 1u);
+    if (LS_OFFSET(gid + 1u) < LS_OFFSET(gid)) ATOMIC_ADD(V(ls_check_flag)[0], 1u);
+}
+#endif
+
+#ifdef HAS_ls_carry_chunk
+// ---- Scan of a split offset array: add the total of the chunks before this one --------------
+INLINE void ls_carry_kernel(CTX_PARAM uint gid) {
+    V(ls_carry_chunk)[gid] += V(ls_carry);
 }
 #endif

@@ -217,15 +217,15 @@ INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 c
         float tol = 5e-4f * gr.voxel_t + 1e-6f * max(fabs(t_leaf.x), fabs(t_leaf.y));
         if (ch.t_in <= t_leaf.x + tol && ch.t_out >= t_leaf.y - tol) {
             uint sid = ls * V(ls_shafts) + ch.shaft;
-            begin = V(ls_shaft_offsets)[sid];
-            end = V(ls_shaft_offsets)[sid + 1u];
+            begin = LS_OFFSET(sid);
+            end = LS_OFFSET(sid + 1u);
             from_shaft = 1;
         }
     }
 #endif
     for (uint i = begin; i < end; ++i) {
 #ifdef HAS_ls_shaft_tris
-        uint tri = from_shaft != 0 ? ls_candidate(CTX_ARG i) : V(voxel_tris)[i];
+        uint tri = from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
 #else
         uint tri = V(voxel_tris)[i];
 #endif
