@@ -108,6 +108,10 @@ class Device(abc.ABC):
 
     limit_name = "max buffer size"
 
+    def check_memory(self, name: str, nbytes: int) -> None:
+        """Fail early when `nbytes` (one array, possibly split over buffers) cannot fit the device
+        memory next to what is allocated. Backends that know their memory override it."""
+
     def loop_limit_error(self, what: str) -> DeviceLimitError:
         """The driver cut a kernel's loops (the probe of shaders/common/scene.h); `what` names the
         loops and why they ran long."""

@@ -142,6 +142,9 @@ class OpenCLDevice(Device):
     def global_mem_bytes(self) -> int:
         return int(self.device.global_mem_size)
 
+    def check_memory(self, name, nbytes):
+        self._check_global(name, nbytes)
+
     def _check_global(self, name: str, nbytes: int) -> None:
         live = sum(self._live.values())
         limit = self.global_mem_bytes

@@ -125,6 +125,10 @@ def test_opencl_global_memory_limit(monkeypatch):
         dev.alloc("more", (1 << 20) + 4)
     dev.release(held)
     dev.release(dev.alloc("more", (1 << 20) + 4))  # fits once `held` is gone
+    # A Line Space whose offsets alone pass the memory fails before its count pass, naming it.
+    monkeypatch.setattr(type(dev), "global_mem_bytes", property(lambda self: sum(self._live.values()) + 65536))
+    with pytest.raises(DeviceLimitError, match="'ls_shaft_offsets' needs .*CL_DEVICE_GLOBAL_MEM_SIZE"):
+        backends.build(dev, "grid-ls", load_scene("cornell"), BuildParams(resolution=(8, 8, 8), ls_n=2))
     monkeypatch.undo()
     _still_works(dev)
 

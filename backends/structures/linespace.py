@@ -247,21 +247,24 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     n = check_n(n)
     per_cell = shafts_per_cell(n)
     n_shafts = cells.count * per_cell
+    # The limits in the order a bigger device would meet them: buffers per array, device memory,
+    # then the 32-bit indices (which no device with less than 16 GiB for the offsets reaches).
+    # Checked before the long count pass.
+    offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1)
+    device.check_memory("ls_shaft_offsets", 4 * (n_shafts + 1))
     if n_shafts + 1 > UINT32_MAX:
         raise DeviceLimitError(
             f"{cells.count} Line Spaces x {per_cell} shafts = {n_shafts} shafts overflow 32-bit "
             "shaft indices (uint, 2^32 - 1)")
     u = uniforms(geometry, n)
     if n_shafts == 0:  # no cell gets a Line Space (e.g. ls_min_candidates above every list)
-        offsets = device.alloc("ls_shaft_offsets", 4)
-        tris = device.alloc("ls_shaft_tris", 4)
-        tris.used_bytes = 0
+        no_offsets = device.alloc("ls_shaft_offsets", 4)
+        no_tris = device.alloc("ls_shaft_tris", 4)
+        no_tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
                  "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
                  "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1}
-        return LineSpaces(n, per_cell, {"ls_shaft_offsets": offsets, "ls_shaft_tris": tris}, stats)
-    # Split (or fail) before the long count pass when the offsets alone pass the limit.
-    offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1)
+        return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
     try:
