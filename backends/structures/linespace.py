@@ -24,8 +24,9 @@ Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, o
 shaft (Sutherland-Hodgman, conservative margin LS_EPS) and writes the count where the shaft's
 offset goes; (3) exclusive scan of that array in place; (4) fill, same test, writing in list order.
 
-Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2 GiB per
-buffer): each is then split over up to LS_MAX_CHUNKS buffers of a power-of-two number of entries
+Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
+buffer here, varying with the host memory in use): each is then split over up to LS_MAX_CHUNKS
+buffers of a power-of-two number of entries
 (SplitArray: `ls_shaft_offsets`, `ls_shaft_offsets1`, ..., `ls_shaft_tris`, `ls_shaft_tris1`, ...;
 kernels read them through the macros of shaders/common/linespace.h), so such a case runs wherever
 the device's memory holds it. The offset array is scanned chunk by chunk with the earlier chunks'
@@ -57,7 +58,7 @@ LS_EPS = 1e-3
 UINT32_MAX = 2**32 - 1
 # Most buffers the shaft offsets or the candidate list is split over. llvmpipe allows 16 storage
 # buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
-# PoCL's 7 GiB of global memory holds fewer than 4 buffers of its 2 GiB limit.
+# PoCL's global memory (7-13 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
 
 LS_PLANES = KernelSpec(
