@@ -58,7 +58,7 @@ LS_EPS = 1e-3
 UINT32_MAX = 2**32 - 1
 # Most buffers the shaft offsets or the candidate list is split over. llvmpipe allows 16 storage
 # buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
-# PoCL's global memory (7-13 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
+# PoCL's global memory (7-14 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
 
 LS_PLANES = KernelSpec(
