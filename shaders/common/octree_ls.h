@@ -18,14 +18,13 @@ INLINE void oct_ls_flags_kernel(CTX_PARAM uint leaf) {
 
 #if defined(HAS_ls_cell_boxes) && defined(HAS_leaves) && defined(HAS_oct_ranks)
 // ---- Build 2: leaf -> Line Space cell (voxel box in grid space + candidate range) ---------
-// One work item per word of the leaf level of the bit pyramid (svo.h): the Morton code of a set
-// bit is the leaf's voxel, its rank the leaf index, as in oct_leaves_kernel.
+// One work item per word of the leaf level of the bit pyramid (svo.h: oct_leaf_word): the Morton
+// code of a set bit is the leaf's voxel, its rank the leaf index, as in oct_leaves_kernel.
 INLINE void oct_ls_cells_kernel(CTX_PARAM uint gid) {
-    uint depth = V(oct_depth);
-    uint w = V(level_words)[depth] + gid;
-    uint word = V(oct_bits)[w];
+    LeafWord lw = oct_leaf_word(CTX_ARG gid);
+    uint word = lw.bits;
     if (word == 0u) return;
-    uint leaf = V(oct_ranks)[w] - V(oct_ranks)[V(level_words)[depth]];
+    uint leaf = lw.first_leaf;
     for (uint b = 0u; b < 32u; ++b) {
         if (((word >> b) & 1u) == 0u) continue;
         uint c = V(ls_ids)[leaf];

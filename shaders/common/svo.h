@@ -146,14 +146,29 @@ INLINE void oct_create_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
+#if defined(HAS_oct_bits) && defined(HAS_oct_ranks) && defined(HAS_level_words)
+// Word gid of the pyramid's leaf level: its bits (bit b = Morton code 32 gid + b) and the index of
+// the leaf of its lowest set bit (ranks count set bits from the pyramid's start, so subtract the
+// leaf level's first rank). The kernels walking the leaves per word (oct_leaves_kernel,
+// oct_ls_cells_kernel in octree_ls.h) number each set bit first_leaf, first_leaf + 1, ...
+STRUCT(LeafWord) { uint bits; uint first_leaf; };
+
+INLINE LeafWord oct_leaf_word(CTX_PARAM uint gid) {
+    uint start = V(level_words)[V(oct_depth)];
+    LeafWord lw;
+    lw.bits = V(oct_bits)[start + gid];
+    lw.first_leaf = V(oct_ranks)[start + gid] - V(oct_ranks)[start];
+    return lw;
+}
+#endif
+
 #if defined(HAS_leaves) && defined(HAS_voxel_offsets)
 // ---- Build 6: link every leaf to its candidate list, one work item per leaf-level word ----
 INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
-    uint depth = V(oct_depth);
-    uint w = V(level_words)[depth] + gid;
-    uint word = V(oct_bits)[w];
+    LeafWord lw = oct_leaf_word(CTX_ARG gid);
+    uint word = lw.bits;
     if (word == 0u) return;
-    uint leaf = V(oct_ranks)[w] - V(oct_ranks)[V(level_words)[depth]];
+    uint leaf = lw.first_leaf;
     uint r = U32(V(grid_res).x);
     for (uint b = 0u; b < 32u; ++b) {
         if (((word >> b) & 1u) == 0u) continue;
