@@ -23,7 +23,7 @@ from harness.scene import Camera
 from harness.scenes import load_scene
 
 from conftest import scene_path
-from test_linespace import accuracy, random_rays, random_scene
+from test_linespace import accuracy, assert_agrees_with_embree_and_plain_twin, random_rays, random_scene
 
 LS_OCTREES = {"svo-ls": "svo", "esvo-ls": "esvo"}
 SPONZA_CAMERA = Camera(eye=(1100.0, 180.0, -40.0), target=(-900.0, 420.0, 40.0), up=(0, 1, 0), fov_deg=65.0)
@@ -87,23 +87,8 @@ def test_leaf_linespaces_equal_grid_ls_voxels(device, monkeypatch, structure, n)
 @pytest.mark.parametrize("scene_name,res,n", [("atrium", 32, 2), ("spheres", 16, 3)])
 def test_agrees_with_embree_and_the_plain_octree(device, structure, scene_name, res, n):
     scene = load_scene(scene_name)
-    rays = primary_rays(scene, 48, 36)
-    ref_p, ref_t = embree_closest(scene, rays)
-    plain = backends.build(device, LS_OCTREES[structure], scene, BuildParams(resolution=(res,) * 3))
-    plain_hits = backends.trace(plain, rays, work=True)
-    plain.release()
-    built = backends.build(device, structure, scene, BuildParams(resolution=(res,) * 3, ls_n=n))
-    hits = backends.trace(built, rays, work=True)
-    built.release()
-    acc = accuracy(scene, hits, ref_p, ref_t)
-    assert acc.agreement >= 0.9999, acc
-    same = accuracy(scene, hits, plain_hits.prim_ids, plain_hits.distances)
-    assert same.disagreements == 0, same
-    # Same walk; a shaft holds a subset of its leaf's list; one lookup per leaf visited at most.
-    assert (hits.work[:, 0] == plain_hits.work[:, 0]).all()
-    assert (hits.work[:, 1] <= plain_hits.work[:, 1]).all()
-    assert hits.work[:, 1].sum() < plain_hits.work[:, 1].sum()
-    assert 0 < hits.work[:, 2].sum() <= hits.work[:, 0].sum()
+    assert_agrees_with_embree_and_plain_twin(device, structure, LS_OCTREES[structure], scene,
+                                             primary_rays(scene, 48, 36), (res,) * 3, n)
 
 
 @pytest.mark.parametrize("structure", LS_OCTREES)
