@@ -115,7 +115,7 @@ class OpenCLDevice(Device):
             "vendor": d.vendor.strip(),
             "backend_version": f"pyopencl {pyopencl.VERSION_TEXT}",
             "max_buffer_bytes": int(d.max_mem_alloc_size),
-            "global_mem_bytes": int(d.global_mem_size),
+            "global_mem_bytes": self.global_mem_bytes,
             "device_type": self.cl.device_type.to_string(d.type),
             "skipped_devices": self.skipped_devices,
         }
@@ -129,7 +129,7 @@ class OpenCLDevice(Device):
         cl = self.cl
         nbytes = max(int(nbytes), 4)
         self.check_size(name, nbytes)
-        self._check_global(name, nbytes)
+        self.check_memory(name, nbytes)
         try:
             buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
             if zero:
@@ -142,10 +142,7 @@ class OpenCLDevice(Device):
     def global_mem_bytes(self) -> int:
         return int(self.device.global_mem_size)
 
-    def check_memory(self, name, nbytes):
-        self._check_global(name, nbytes)
-
-    def _check_global(self, name: str, nbytes: int) -> None:
+    def check_memory(self, name: str, nbytes: int) -> None:
         live = sum(self._live.values())
         limit = self.global_mem_bytes
         if live + nbytes > limit:
@@ -163,7 +160,7 @@ class OpenCLDevice(Device):
         if data.nbytes == 0:
             return self.alloc(name, 4)
         self.check_size(name, data.nbytes)
-        self._check_global(name, data.nbytes)
+        self.check_memory(name, data.nbytes)
         try:
             buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
         except cl.Error as exc:

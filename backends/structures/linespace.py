@@ -308,9 +308,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for b in temps:
             device.release(b)
     device.finish()
-    for b in tris_bufs.values():
-        b.used_bytes = b.nbytes
-    if total == 0:
+    if total == 0:  # the buffers are sized exactly, except the 4-byte stand-in for an empty list
         tris_bufs["ls_shaft_tris"].used_bytes = 0
     stats = {
         "ls_n": n,
