@@ -25,6 +25,6 @@ def _embree_cache(tmp_path_factory):
 
 @pytest.fixture(params=["glsl", "opencl"])
 def device(request):
-    import backends
+    from lsbench import backends
 
     return backends.get_device(request.param)

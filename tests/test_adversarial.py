@@ -1,4 +1,4 @@
-"""Adversarial rays (harness/adversarial.py) on every registered structure and both backends:
+"""Adversarial rays (lsbench/inputs/adversarial.py) on every registered structure and both backends:
 every disagreement with Embree must be a documented tie, none unexplained."""
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import backends
-from harness.adversarial import RAY_CATEGORIES, adversarial_rays, check_structure, classify, structure_params
-from harness.groundtruth import embree_closest
-from harness.rays import RAY_SETS, RaySet, make_rays
-from harness.scenes import load_scene
+from lsbench import backends
+from lsbench.inputs.adversarial import RAY_CATEGORIES, adversarial_rays, check_structure, classify, structure_params
+from lsbench.oracle.embree import embree_closest
+from lsbench.inputs.rays import RAY_SETS, RaySet, make_rays
+from lsbench.inputs.scenes import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 STRUCTURES = backends.structure_names()
@@ -99,7 +99,7 @@ def test_planted_defect_is_unexplained(monkeypatch):
 
 
 def test_cli_trace_adversarial(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "harness.cli", "trace", "--scene", "cornell", "--structure",
+    proc = subprocess.run([sys.executable, "-m", "lsbench", "trace", "--scene", "cornell", "--structure",
                            "grid", "--backend", "opencl", "--resolution", "8x12x5", "--rays", "adversarial",
                            "--repeats", "1", "--json"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert proc.returncode in (0,), proc.stderr

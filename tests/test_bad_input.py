@@ -11,18 +11,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import backends
-from harness.adversarial import check_structure, structure_params
-from harness.rays import primary_rays
-from harness.scene import Scene
-from harness.scenes import load_scene
+from lsbench import backends
+from lsbench.inputs.adversarial import check_structure, structure_params
+from lsbench.inputs.rays import primary_rays
+from lsbench.inputs.scene import Scene
+from lsbench.inputs.scenes import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "scenes" / "teapot.ply"
 
 
 def lsbench(*args):
-    return subprocess.run([sys.executable, "-m", "harness.cli", *map(str, args)], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "lsbench", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True, timeout=300, env=dict(os.environ))
 
 

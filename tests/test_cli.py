@@ -19,7 +19,7 @@ RECORD_KEYS = {"scene", "structure", "backend", "resolution", "ls_n", "rays", "r
 
 def lsbench(*args, env=None, check=None):
     full_env = dict(os.environ, **(env or {}))
-    proc = subprocess.run([sys.executable, "-m", "harness.cli", *map(str, args)], cwd=REPO,
+    proc = subprocess.run([sys.executable, "-m", "lsbench", *map(str, args)], cwd=REPO,
                           capture_output=True, text=True, env=full_env, timeout=600)
     if check is not None:
         assert proc.returncode == check, proc.stdout + proc.stderr
@@ -142,7 +142,7 @@ def test_ci_gate_scenario_passes():
 
 
 def test_scenario_ls_min_candidates_list_and_bad_values(tmp_path):
-    from harness.scenario import ScenarioError, load_scenario
+    from lsbench.inputs.scenario import ScenarioError, load_scenario
 
     block = ('[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "svo-ls"]\nbackends = ["opencl"]\n'
              'resolutions = [16]\nls_n = [1, 2]\nls_min_candidates = K\n')

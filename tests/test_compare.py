@@ -1,5 +1,5 @@
 """Regression comparison on hand-written run directories (no GPU), and compare-commits on a
-throw-away git repository whose fake `harness.cli run` writes records."""
+throw-away git repository whose fake `lsbench.cli run` writes records."""
 from __future__ import annotations
 
 import argparse
@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness import compare, store
+from lsbench.compare import verdicts as compare
+from lsbench.results import store
 
 GL_DEV = "llvmpipe (LLVM 15.0.6, 256 bits)"
 
@@ -187,10 +188,10 @@ def test_cli_compare_exit_code_and_html(tmp_path, capsys):
 # ---------------------------------------------------------------- compare-commits
 
 FAKE_CLI = '''
-"""Fake harness.cli: `run SCENARIO --out DIR` writes one record whose speed is SPEED."""
+"""Fake `python -m lsbench`: `run SCENARIO --out DIR` writes one record whose speed is SPEED."""
 import json, os, sys
 from pathlib import Path
-from harness.speed import SPEED
+from lsbench.speed import SPEED
 args = sys.argv[1:]
 assert args[0] == "run" and args[2] == "--out", args
 out = Path(args[3]); out.mkdir(parents=True, exist_ok=True)
@@ -214,18 +215,17 @@ def _git(repo, *args):
                     reason="git not installed")
 def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path):
     repo = tmp_path / "repo"
-    (repo / "harness").mkdir(parents=True)
+    (repo / "lsbench").mkdir(parents=True)
     _git(tmp_path, "init", "-q", str(repo))
-    (repo / "harness" / "__init__.py").write_text("")
-    (repo / "harness" / "__main__.py").write_text("")
-    (repo / "harness" / "cli.py").write_text(textwrap.dedent(FAKE_CLI))
-    (repo / "harness" / "speed.py").write_text("SPEED = 1.0\n")
+    (repo / "lsbench" / "__init__.py").write_text("")
+    (repo / "lsbench" / "__main__.py").write_text(textwrap.dedent(FAKE_CLI))
+    (repo / "lsbench" / "speed.py").write_text("SPEED = 1.0\n")
     _git(repo, "add", "-A")
     _git(repo, "commit", "-q", "-m", "fast")
-    (repo / "harness" / "speed.py").write_text("SPEED = 0.7\n")  # 30 % fewer rays/s
+    (repo / "lsbench" / "speed.py").write_text("SPEED = 0.7\n")  # 30 % fewer rays/s
     _git(repo, "commit", "-q", "-am", "slow")
     # uncommitted change in the main work tree must not leak into either revision
-    (repo / "harness" / "speed.py").write_text("SPEED = 100.0\n")
+    (repo / "lsbench" / "speed.py").write_text("SPEED = 100.0\n")
     scenario = tmp_path / "s.toml"
     scenario.write_text('name = "tiny"\n')
 

@@ -4,15 +4,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import backends
-from backends import BuildParams, DeviceLimitError
-from backends.structures.base import BOX_EPS
-from harness import reference
-from harness.groundtruth import embree_closest
-from harness.rays import RaySet, primary_rays
-from harness.scene import Camera, Scene
-from harness.scenes import load_scene
-from harness.verify import compare
+from lsbench import backends
+from lsbench.backends import BuildParams, DeviceLimitError
+from lsbench.backends.structures.base import BOX_EPS
+from lsbench.oracle import reference
+from lsbench.oracle.embree import embree_closest
+from lsbench.inputs.rays import RaySet, primary_rays
+from lsbench.inputs.scene import Camera, Scene
+from lsbench.inputs.scenes import load_scene
+from lsbench.oracle.verify import compare
 
 from conftest import scene_path
 
@@ -93,8 +93,8 @@ def test_backends_give_identical_hits():
 
 def test_work_counters_count_voxels_and_tests(device):
     """A ray through k empty voxels to one triangle: k+1 iterations, 1 candidate test."""
-    from harness.rays import RaySet
-    from harness.scene import Scene
+    from lsbench.inputs.rays import RaySet
+    from lsbench.inputs.scene import Scene
 
     # One triangle filling the x = 7.5 slab of an 8x1x1 grid over [0, 8] x [0, 1] x [0, 1].
     v = np.array([[7.5, -1, -1], [7.5, 3, -1], [7.5, -1, 3], [0, 0, 0], [8, 1, 1]], np.float32)

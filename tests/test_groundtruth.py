@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from harness import groundtruth
-from harness.groundtruth import embree_closest, embree_version
-from harness.rays import RaySet
-from harness.scene import Scene
+from lsbench.oracle import embree as groundtruth
+from lsbench.oracle.embree import embree_closest, embree_version
+from lsbench.inputs.rays import RaySet
+from lsbench.inputs.scene import Scene
 
 
 def quad_scene(z=5.0):

@@ -12,16 +12,16 @@ from pathlib import Path
 
 import pytest
 
-import backends
-from backends import BuildParams, DeviceLimitError
-from backends.structures import grid
-from harness.scenes import load_scene
+from lsbench import backends
+from lsbench.backends import BuildParams, DeviceLimitError
+from lsbench.backends.structures import grid
+from lsbench.inputs.scenes import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def lsbench(*args, env=None, timeout=300):
-    return subprocess.run([sys.executable, "-m", "harness.cli", *map(str, args)], cwd=REPO, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "lsbench", *map(str, args)], cwd=REPO, capture_output=True,
                           text=True, timeout=timeout, env=dict(os.environ, **(env or {})))
 
 
@@ -100,7 +100,7 @@ def test_glsl_storage_block_count_limit(monkeypatch):
     """A kernel binding more storage buffers than a compute shader may (llvmpipe: 16; e.g. a Line
     Space whose arrays are split into many buffers) fails naming the limit, before the driver's
     link error, and the device stays usable."""
-    from backends.structures import linespace
+    from lsbench.backends.structures import linespace
 
     dev = backends.get_device("glsl")
     limit = int(dev.ctx.info["GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"])
@@ -194,7 +194,7 @@ def test_worker_fault_fails_only_that_case(tmp_path, fault, needle):
 def test_killed_run_resumes_and_fresh_redoes(tmp_path):
     out = tmp_path / "run"
     scen = scenario(tmp_path, case("opencl", [2, 4, 6, 8]))
-    proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "run", str(scen), "--out", str(out)], cwd=REPO,
+    proc = subprocess.Popen([sys.executable, "-m", "lsbench", "run", str(scen), "--out", str(out)], cwd=REPO,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     results = out / "results.jsonl"
     deadline = time.monotonic() + 180
@@ -219,7 +219,7 @@ def test_killed_run_resumes_and_fresh_redoes(tmp_path):
 
 
 def test_truncated_last_line_is_not_glued_to_the_next_record(tmp_path):
-    from harness.runner import append_record, read_records
+    from lsbench.running.runner import append_record, read_records
 
     path = tmp_path / "results.jsonl"
     append_record(path, {"key": "a"})

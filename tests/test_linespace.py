@@ -11,14 +11,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import backends
-from backends import BuildParams, DeviceLimitError
-from backends.structures import linespace
-from harness.groundtruth import embree_closest
-from harness.rays import RaySet, primary_rays
-from harness.scene import Camera, Scene
-from harness.scenes import load_scene
-from harness.verify import compare
+from lsbench import backends
+from lsbench.backends import BuildParams, DeviceLimitError
+from lsbench.backends.structures import linespace
+from lsbench.oracle.embree import embree_closest
+from lsbench.inputs.rays import RaySet, primary_rays
+from lsbench.inputs.scene import Camera, Scene
+from lsbench.inputs.scenes import load_scene
+from lsbench.oracle.verify import compare
 
 from conftest import scene_path
 

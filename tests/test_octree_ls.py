@@ -15,12 +15,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import backends
-from backends import BuildParams, DeviceLimitError
-from harness.groundtruth import embree_closest
-from harness.rays import primary_rays
-from harness.scene import Camera
-from harness.scenes import load_scene
+from lsbench import backends
+from lsbench.backends import BuildParams, DeviceLimitError
+from lsbench.oracle.embree import embree_closest
+from lsbench.inputs.rays import primary_rays
+from lsbench.inputs.scene import Camera
+from lsbench.inputs.scenes import load_scene
 
 from conftest import scene_path
 from test_linespace import accuracy, assert_agrees_with_embree_and_plain_twin, random_rays, random_scene
@@ -51,8 +51,7 @@ def test_leaf_linespaces_equal_grid_ls_voxels(device, monkeypatch, structure, n)
     scene = load_scene("spheres")
     res = 8
     # grid-ls on the octree's bounding cube, so both build the same voxels.
-    monkeypatch.setattr(backends, "CUBIC_STRUCTURES", backends.CUBIC_STRUCTURES | {"grid-ls"})
-    params = BuildParams(resolution=(res,) * 3, ls_n=n)
+    params = BuildParams(resolution=(res,) * 3, ls_n=n, bounding_cube=True)
     ref = backends.build(device, "grid-ls", scene, params)
     oct_ = backends.build(device, structure, scene, params)
     assert ref.geometry == oct_.geometry

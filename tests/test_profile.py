@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import backends
-from backends import BuildParams
-from harness import profile
-from harness.rays import RaySet
-from harness.scene import Scene
+from lsbench import backends
+from lsbench.backends import BuildParams
+from lsbench.profile import heatmaps as profile
+from lsbench.profile import stability
+from lsbench.inputs.rays import RaySet
+from lsbench.inputs.scene import Scene
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -98,8 +99,8 @@ def test_image_shape_layouts():
 
 
 def test_heatmaps_written_and_match_counters(device, tmp_path):
-    from harness.rays import primary_rays
-    from harness.scenes import load_scene
+    from lsbench.inputs.rays import primary_rays
+    from lsbench.inputs.scenes import load_scene
 
     scene = load_scene("cornell")
     rays = primary_rays(scene, 32, 24)
@@ -171,7 +172,7 @@ def test_clock_grows_with_work(tmp_path):
 
 def _cli(*args, timeout=300):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "harness.cli", *args], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "-m", "lsbench", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -207,7 +208,7 @@ def test_spread_counts_failures():
     recs = [{"status": "ok", "trace_seconds": 1.0, "trace_cv": 0.1},
             {"status": "ok", "trace_seconds": 3.0, "trace_cv": 0.3},
             {"status": "failed", "reason": "boom"}]
-    s = profile.spread(recs)
+    s = stability.spread(recs)
     assert s["ok"] == 2 and s["failed"] == ["boom"]
     assert s["median"] == 2.0 and s["spread"] == pytest.approx(1.0)
     assert s["within_run_cv_mean"] == pytest.approx(0.2)

@@ -1,7 +1,7 @@
 """Property-based: small random scenes (a few triangles, degenerate ones included, corners on a
 coarse lattice so edges are shared and axis-aligned) and random rays (axis-parallel and signed
 zero directions included) agree with Embree on every registered structure and both backends,
-up to the documented ties of harness/adversarial.py."""
+up to the documented ties of lsbench/inputs/adversarial.py."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,10 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import backends
-from harness.adversarial import check_structure, structure_params
-from harness.rays import RaySet
-from harness.scene import Scene
+from lsbench import backends
+from lsbench.inputs.adversarial import check_structure, structure_params
+from lsbench.inputs.rays import RaySet
+from lsbench.inputs.scene import Scene
 
 # corners on a lattice of halves (shared vertices, axis-aligned edges, coplanar faces) or free
 coord = st.one_of(st.sampled_from([-1.0, -0.5, 0.0, 0.5, 1.0]),

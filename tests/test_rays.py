@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.rays import RAY_SETS, RayError, RaySet, load_rays_file, make_rays, primary_rays
-from harness.scene import Camera
-from harness.scenes import load_scene
+from lsbench.inputs.rays import RAY_SETS, RayError, RaySet, load_rays_file, make_rays, primary_rays
+from lsbench.inputs.scene import Camera
+from lsbench.inputs.scenes import load_scene
 
 
 @pytest.fixture(scope="module")

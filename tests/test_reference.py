@@ -5,8 +5,8 @@ import itertools
 import numpy as np
 import pytest
 
-from harness import reference
-from harness.reference import (
+from lsbench.oracle import reference
+from lsbench.oracle.reference import (
     borderline_pairs, compare_to_reference, pairs, voxel_sets, voxelize,
 )
 

@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness import report, store
+from lsbench.report import page as report
+from lsbench.results import store
+from lsbench.running import environment
 
 CHROMIUM = "/usr/bin/chromium"
 
@@ -86,7 +88,7 @@ def make_run(run_dir: Path, with_heatmap=True) -> list[dict]:
                         records.append(fake_record(scene, s, backend, res, ls_n=n, rng=rng,
                                                    trace=0.004 * speed[s] * n, memory=int(15 * n ** 4 * res ** 3 / 8),
                                                    agreement=1 - 1e-4 * n))
-    info = store.environment_info()
+    info = environment.environment_info()
     info.update({"commit": "0123456789abcdef", "dirty": True,
                  "devices": {"glsl": {"device": "llvmpipe (LLVM 15.0.6, 256 bits)", "driver": "Mesa 22.3.6"},
                              "opencl": {"device": "pthread-cpu", "driver": "PoCL 3.1"}},
@@ -119,10 +121,10 @@ def test_read_run_later_record_of_a_key_wins(tmp_path):
 
 
 def test_git_state_and_environment(tmp_path):
-    commit, dirty = store.git_state(Path(__file__).parent)
+    commit, dirty = environment.git_state(Path(__file__).parent)
     assert commit is None or len(commit) == 40
-    assert store.git_state(tmp_path) == (None, None)
-    env = store.environment_info()
+    assert environment.git_state(tmp_path) == (None, None)
+    env = environment.environment_info()
     assert env["versions"]["numpy"] == np.__version__
     assert "T" in env["date"] and env["python"]
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.scene import Camera, Scene, SceneError
-from harness.scenes import builtin_names, default_camera, load_scene
+from lsbench.inputs.scene import Camera, Scene, SceneError
+from lsbench.inputs.scenes import builtin_names, default_camera, load_scene
 
 SCENES_DIR = Path(os.environ.get(
     "LSBENCH_SCENES", Path(__file__).resolve().parents[1] / ".." / "shared" / "scenes"))

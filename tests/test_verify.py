@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from harness.verify import (
+from lsbench.oracle.verify import (
     AGREE, EXTRA, MISSED, TIE, WRONG, Accuracy, classify, compare, disagreement_indices,
     resolve_abs_tol,
 )

@@ -1,10 +1,10 @@
-"""Profiling: per-ray work counters as heatmaps (EXR + PNG + JSON summary), the device clock,
-and the stability of timing figures (`lsbench stability`).
+"""Profiling: per-ray work counters as heatmaps (EXR + PNG + JSON summary) and the device clock
+(the timing-stability experiment is lsbench/profile/stability.py).
 
 Heatmaps (thesis Fig. 4 and Fig. 20): the profiling variant of a traversal kernel (COUNT_WORK,
 backends.trace(..., work=True)) writes per ray uint4(iterations, candidate tests, Line Space
 lookups, clock ticks). `write_heatmaps` lays them out as the ray image (row 0 = top, as
-harness.rays.primary_rays) and writes into OUT_DIR:
+lsbench.inputs.rays.primary_rays) and writes into OUT_DIR:
 
     <case>.exr                       float32, one channel per counter (CHANNELS), exact values
     <case>_iterations_p99.png        inferno, 0 .. 99th percentile (clamped above)
@@ -22,7 +22,7 @@ harness.rays.primary_rays) and writes into OUT_DIR:
 <case> is the case key with every character outside [A-Za-z0-9.-] replaced by '_'. The returned
 dict maps names (exr, iterations, candidate_tests, ..., summary) to paths RELATIVE TO
 OUT_DIR's PARENT: runs write into RUN_DIR/heatmaps, so records hold "heatmaps/<file>" relative to
-the run folder (what harness.report expects); `lsbench trace --heatmaps DIR` gives paths relative
+the run folder (what lsbench.report.page expects); `lsbench trace --heatmaps DIR` gives paths relative
 to DIR/.. in the same way. Ray sets that are not images (width 0, e.g. a .npz) are laid out row-major
 as the case's WxH when that holds exactly the rays, else in a near-square image, ray i at
 (i // W, i % W), padding NaN in the EXR and black in the PNGs.
@@ -38,13 +38,10 @@ otherwise paint an 8-ray streak of milliseconds.
 """
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
 import re
-import statistics
 import struct
-import sys
 import zlib
 from pathlib import Path
 
@@ -61,7 +58,7 @@ COLORMAP = "inferno"
 def clock_info(device) -> dict:
     """What the clock field of the work counters holds on `device` (mirrors
     backends.structures.base.clock_defines, which decides whether the kernels read a clock)."""
-    from backends.structures.base import clock_defines
+    from lsbench.backends.structures.base import clock_defines
 
     info = device.info()
     name = info.get("device", "?")
@@ -222,7 +219,7 @@ def profile_trace(built, rays, clock_runs: int = CLOCK_RUNS):
     agree between runs (they are deterministic); the clock is the per-ray minimum, which drops
     the host threads' preemption that the llvmpipe ns clock (wall time) otherwise shows as
     isolated 8-pixel streaks of milliseconds. Returns (hits, work)."""
-    import backends
+    from lsbench import backends
 
     hits = backends.trace(built, rays, work=True)
     work = hits.work.copy()
@@ -320,143 +317,3 @@ def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_
     path.write_text(json.dumps(summary, indent=2))
     files["summary"] = rel(path)
     return files
-
-
-# ---- timing stability -------------------------------------------------------------------------
-def spread(records: list[dict], field: str = "trace_seconds") -> dict:
-    """Spread of one timing field over repeated runs of a case (failed runs listed, not counted)."""
-    values = [float(r[field]) for r in records if r.get("status") == "ok" and r.get(field) is not None]
-    failed = [r.get("reason") for r in records if r.get("status") != "ok"]
-    if not values:
-        return {"runs": len(records), "ok": 0, "values": [], "failed": failed}
-    med = statistics.median(values)
-    mean = statistics.fmean(values)
-    out = {
-        "runs": len(records), "ok": len(values), "values": values, "median": med,
-        "min": min(values), "max": max(values),
-        # (max - min) / median: how far two runs of the same case can lie apart.
-        "spread": (max(values) - min(values)) / med if med > 0 else 0.0,
-        "cv": statistics.pstdev(values) / mean if len(values) > 1 and mean > 0 else 0.0,
-        "failed": failed,
-    }
-    if field == "trace_seconds":
-        cvs = [float(r["trace_cv"]) for r in records if r.get("status") == "ok" and r.get("trace_cv") is not None]
-        out["within_run_cv"] = cvs  # each run's CV over its own repeats
-        out["within_run_cv_mean"] = statistics.fmean(cvs) if cvs else None
-    return out
-
-
-def timing_stability(case, settings, runs: int = 3, env: dict | None = None, log=None) -> dict:
-    """Run `case` `runs` times in this process (execute: build + trace + timing each time) and
-    `runs` times each in a fresh worker process (runner.run_case_isolated), and return the spread
-    of the median trace time (and build time) within each group and across both."""
-    from .execute import execute
-    from .runner import run_case_isolated
-
-    log = log or (lambda *a: None)
-    env = env or {}
-    in_proc, cross = [], []
-    for i in range(runs):
-        rec = execute(case, settings, env)
-        log(f"in-process run {i + 1}/{runs}: " + _brief(rec))
-        in_proc.append(rec)
-    for i in range(runs):
-        rec = run_case_isolated(case, settings, env)
-        log(f"separate process {i + 1}/{runs}: " + _brief(rec))
-        cross.append(rec)
-    ok = [r for r in in_proc + cross if r.get("status") == "ok"]
-    first = ok[0] if ok else (in_proc + cross)[0]
-    result = {
-        "case": case.key, "runs": runs, "repeats": settings.repeats, "warmup": settings.warmup,
-        "device": first.get("device"), "driver": first.get("driver"), "clock": first.get("clock"),
-        "ray_count": first.get("ray_count"),
-        "in_process": spread(in_proc), "cross_process": spread(cross), "all": spread(in_proc + cross),
-        "build_in_process": spread(in_proc, "build_seconds"),
-        "build_cross_process": spread(cross, "build_seconds"),
-    }
-    a, b = result["in_process"].get("median"), result["cross_process"].get("median")
-    # > 1: a fresh process is slower (or faster, < 1) than the one that already ran the case.
-    result["cross_over_in_process_median"] = b / a if a and b else None
-    return result
-
-
-def _brief(rec: dict) -> str:
-    if rec.get("status") != "ok":
-        return f"FAILED: {rec.get('reason')}"
-    return (f"trace median {rec['trace_seconds'] * 1e3:.3f} ms (cv {rec['trace_cv'] * 100:.1f}%), "
-            f"build {rec['build_seconds'] * 1e3:.1f} ms")
-
-
-def stability_text(result: dict) -> str:
-    lines = [f"timing stability of {result['case']} on {result.get('device')} ({result.get('clock')}), "
-             f"{result['runs']} runs x {result['repeats']} repeats"]
-    for label, key in (("trace, same process", "in_process"), ("trace, separate processes", "cross_process"),
-                       ("trace, all runs", "all"), ("build, same process", "build_in_process"),
-                       ("build, separate processes", "build_cross_process")):
-        s = result[key]
-        if not s.get("ok"):
-            lines.append(f"  {label:27s} no successful run: {s.get('failed')}")
-            continue
-        extra = ""
-        if s.get("within_run_cv_mean") is not None:
-            extra = f"  within-run cv {s['within_run_cv_mean'] * 100:.1f}%"
-        lines.append(f"  {label:27s} median {s['median'] * 1e3:9.3f} ms  min {s['min'] * 1e3:9.3f}  "
-                     f"max {s['max'] * 1e3:9.3f}  spread {s['spread'] * 100:5.1f}%  cv {s['cv'] * 100:5.1f}%{extra}")
-    r = result.get("cross_over_in_process_median")
-    if r:
-        lines.append(f"  separate / same process median: {r:.3f}")
-    return "\n".join(lines)
-
-
-def cmd_stability(args) -> int:
-    from .cli import UsageError, _parse_size, record_env
-    from .scenario import REPO_ROOT, Case, RunSettings
-    from .scenes import load_scene
-
-    width, height = _parse_size(args.size)
-    if args.processes < 1:
-        raise UsageError("--processes must be at least 1")
-    load_scene(args.scene)  # bad input fails here, before any worker starts
-    case = Case(args.scene, args.structure, args.backend, str(args.resolution), args.ls_n,
-                args.ls_min_candidates, args.rays, width, height)
-    settings = RunSettings(width=width, height=height, rays=args.rays, repeats=args.repeats,
-                           warmup=args.warmup, timeout_seconds=args.timeout)
-    env = record_env()
-    result = timing_stability(case, settings, args.processes, env,
-                              log=lambda m: print(m, file=sys.stderr, flush=True))
-    result.update(env)
-    result["date"] = _dt.datetime.now().isoformat(timespec="seconds")
-    result["command"] = " ".join(sys.argv)
-    if args.out:
-        out = Path(args.out)
-    else:
-        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-        out = REPO_ROOT / "reports" / f"stability-{case_slug(case.key)}-{stamp}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2, default=str))
-    print(stability_text(result))
-    print(f"written: {out}")
-    ok = result["in_process"].get("ok") and result["cross_process"].get("ok")
-    return 0 if ok else 1
-
-
-def register(subparsers) -> None:
-    import backends
-
-    s = subparsers.add_parser("stability", help="repeat one case in this process and in separate "
-                              "processes; print and write the spread of its timings")
-    s.add_argument("--scene", required=True, help="built-in name or mesh file")
-    s.add_argument("--structure", required=True, choices=backends.structure_names())
-    s.add_argument("--backend", required=True, choices=list(backends.BACKENDS))
-    s.add_argument("--resolution", default="64", help="64 (cubic) or RxRyRz")
-    s.add_argument("--ls-n", type=int, default=0)
-    s.add_argument("--ls-min-candidates", type=int, default=0)
-    s.add_argument("--size", default="128x128", help="image size WxH for camera rays")
-    s.add_argument("--rays", default="primary")
-    s.add_argument("--processes", type=int, default=3,
-                   help="runs in this process and, as many again, each in its own process")
-    s.add_argument("--repeats", type=int, default=5, help="timed launches per run")
-    s.add_argument("--warmup", type=int, default=1)
-    s.add_argument("--timeout", type=float, default=600.0, help="seconds per separate-process run")
-    s.add_argument("--out", metavar="FILE.json", help="default reports/stability-<case>-<date>.json")
-    s.set_defaults(func=cmd_stability)

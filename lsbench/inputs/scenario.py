@@ -29,20 +29,16 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
+from lsbench.paths import scenes_dir, shipped_scenario
+
 
 
 class ScenarioError(ValueError):
     """A scenario file that cannot be run: one-line message."""
-
-
-def scenes_dir() -> Path:
-    return Path(os.environ.get("LSBENCH_SCENES", REPO_ROOT.parent / "shared" / "scenes"))
 
 
 def expand_scene(spec: str) -> str:
@@ -91,7 +87,7 @@ class Case:
                 f"r{self.resolution}|n{self.ls_n}|k{self.ls_min_candidates}")
 
     def camera_object(self):
-        from .scene import Camera
+        from lsbench.inputs.scene import Camera
 
         if self.camera is None:
             return None
@@ -129,9 +125,11 @@ def _camera(table, where: str):
 
 
 def load_scenario(path: str, gpu: bool = False) -> Scenario:
-    from backends import BACKENDS, structure_names
+    from lsbench.backends import BACKENDS, structure_info, structure_names
 
     p = Path(path)
+    if not p.is_file() and shipped_scenario(str(path)) is not None:
+        p = shipped_scenario(str(path))  # a shipped scenario by name: `lsbench gate ci`
     if not p.is_file():
         raise ScenarioError(f"scenario file not found: {path}")
     try:
@@ -180,7 +178,7 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
                 for b in backs:
                     for r in resolutions:
                         # A Line Space N only means something for Line Space structures.
-                        line_space = s.endswith("-ls")
+                        line_space = structure_info(s).line_space
                         for n in (ns if line_space else [0]):
                             for k in (ks if line_space else [0]):
                                 cases.append(Case(scene, s, b, str(r), n, k, settings.rays, width, height,

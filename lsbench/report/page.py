@@ -25,9 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.store import format_commit, read_run, scenario_name
+from lsbench.results.store import format_commit, read_run, scenario_name
 
-STRUCTURE_ORDER = ["grid", "svo", "esvo", "grid-ls", "svo-ls", "esvo-ls"]
 STRUCTURE_COLORS = {
     "grid": "#1f77b4", "svo": "#ff7f0e", "esvo": "#2ca02c",
     "grid-ls": "#6baed6", "svo-ls": "#fdae6b", "esvo-ls": "#74c476",
@@ -43,7 +42,10 @@ e = html.escape
 # ---------------------------------------------------------------- small helpers
 
 def _is_ls(rec) -> bool:
-    return bool(rec.get("ls_n")) or str(rec.get("structure", "")).endswith("-ls")
+    from lsbench.backends.structures import STRUCTURES
+
+    info = STRUCTURES.get(str(rec.get("structure", "")))
+    return bool(rec.get("ls_n")) or (info is not None and info.line_space)
 
 
 def _ok(rec) -> bool:
@@ -67,7 +69,9 @@ def _scene_name(rec) -> str:
 
 
 def _structure_sort(name) -> tuple:
-    return (STRUCTURE_ORDER.index(name) if name in STRUCTURE_ORDER else len(STRUCTURE_ORDER), name)
+    from lsbench.backends.structures import display_order
+
+    return display_order(name)
 
 
 def _color(structure, _extra={}) -> str:
@@ -731,22 +735,3 @@ def write_report(run_dir, out_dir=None) -> Path:
     index = out_dir / "index.html"
     index.write_text("\n".join(out))
     return index
-
-
-def _cmd_report(args) -> int:
-    try:
-        print(write_report(args.run_dir, args.out))
-    except FileNotFoundError as exc:
-        print(f"lsbench report: error: {exc}", file=__import__("sys").stderr)
-        return 2
-    return 0
-
-
-def register(subparsers) -> None:
-    """`lsbench report RUN_DIR [--out DIR]`: write the HTML report, print index.html's path."""
-    p = subparsers.add_parser("report", help="write the HTML report of a run",
-                              description="Write index.html and charts for RUN_DIR.")
-    p.add_argument("run_dir", metavar="RUN_DIR")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="report folder (default: RUN_DIR itself; images are copied when elsewhere)")
-    p.set_defaults(func=_cmd_report)

@@ -1,4 +1,4 @@
-"""Compare a backend's closest hits with the Embree reference (harness.groundtruth).
+"""Compare a backend's closest hits with the Embree reference (lsbench.oracle.embree).
 
 Every ray falls in exactly one category:
 

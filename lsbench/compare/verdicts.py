@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.store import format_commit, read_run
+from lsbench.results.store import format_commit, read_run
 
 DEFAULT_FACTOR = 1.1
 DEFAULT_ALPHA = 0.01
@@ -474,7 +474,7 @@ def compare_commits(rev_a: str, rev_b: str, scenario, factor: float = DEFAULT_FA
                 env = dict(os.environ)
                 env["PYTHONPATH"] = str(wt) + (os.pathsep + env["PYTHONPATH"]
                                                if env.get("PYTHONPATH") else "")
-                cmd = [sys.executable, "-m", "harness.cli", "run", scen_arg, "--out",
+                cmd = [sys.executable, "-m", "lsbench", "run", scen_arg, "--out",
                        str(run_dir), *extra_args]
                 print(f"[{rev} = {sha[:10]}] {' '.join(cmd)}", file=stream or sys.stderr, flush=True)
                 proc = subprocess.run(cmd, cwd=wt, env=env)
@@ -490,59 +490,3 @@ def compare_commits(rev_a: str, rev_b: str, scenario, factor: float = DEFAULT_FA
         _git(repo_dir, "worktree", "prune", check=False)
         shutil.rmtree(tmp_root, ignore_errors=True)
     return compare_runs(run_dirs[0], run_dirs[1], factor=factor, alpha=alpha)
-
-
-# ---------------------------------------------------------------- CLI
-
-def _cmd_compare(args) -> int:
-    try:
-        res = compare_runs(args.base, args.head, factor=args.factor, alpha=args.alpha)
-    except FileNotFoundError as exc:
-        print(f"lsbench compare: error: {exc}", file=sys.stderr)
-        return 2
-    print(format_table(res))
-    if args.report:
-        print(f"wrote {write_compare_html(res, Path(args.head) / 'compare.html')}")
-    return res.exit_code
-
-
-def _cmd_compare_commits(args) -> int:
-    try:
-        res = compare_commits(args.rev_a, args.rev_b, args.scenario, factor=args.factor,
-                              out_dir=args.out, alpha=args.alpha)
-    except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
-        msg = getattr(exc, "stderr", None) or exc
-        print(f"lsbench compare-commits: error: {str(msg).strip()}", file=sys.stderr)
-        return 2
-    print(format_table(res))
-    print(f"wrote {write_compare_html(res, Path(res.head_dir) / 'compare.html')}")
-    return res.exit_code
-
-
-def register(subparsers) -> None:
-    """`lsbench compare BASE HEAD` and `lsbench compare-commits REV_A REV_B SCENARIO`.
-    Handlers are set as `func` (args -> exit code: 1 on regression)."""
-    p = subparsers.add_parser(
-        "compare", help="compare two runs; exit 1 on regression",
-        description="Match the cases of two run directories by key and flag regressions.")
-    p.add_argument("base", metavar="BASE_RUN")
-    p.add_argument("head", metavar="HEAD_RUN")
-    p.add_argument("--factor", type=float, default=DEFAULT_FACTOR,
-                   help="slowdown / memory growth ratio that counts (default %(default)s)")
-    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
-                   help="significance level of the one-sided U test (default %(default)s)")
-    p.add_argument("--report", action="store_true", help="also write HEAD_RUN/compare.html")
-    p.set_defaults(func=_cmd_compare)
-
-    q = subparsers.add_parser(
-        "compare-commits", help="run a scenario at two git revisions and compare",
-        description="Create temporary git worktrees at REV_A and REV_B, run SCENARIO in each "
-                    "(with its own code), then compare REV_A (base) with REV_B (head).")
-    q.add_argument("rev_a", metavar="REV_A")
-    q.add_argument("rev_b", metavar="REV_B")
-    q.add_argument("scenario", metavar="SCENARIO")
-    q.add_argument("--factor", type=float, default=DEFAULT_FACTOR)
-    q.add_argument("--alpha", type=float, default=DEFAULT_ALPHA)
-    q.add_argument("--out", default=None, metavar="DIR",
-                   help="where both runs go (default reports/compare-A-B-TIME)")
-    q.set_defaults(func=_cmd_compare_commits)

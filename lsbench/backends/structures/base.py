@@ -76,6 +76,7 @@ class BuildParams:
     resolution: tuple[int, int, int]
     ls_n: int = 0  # Line Space patches per face edge (0 = no Line Space)
     ls_min_candidates: int = 0  # build Line Spaces only in voxels with more candidates than this
+    bounding_cube: bool = False  # grid over the bounding cube even where not needed (compare with octrees)
     options: dict = field(default_factory=dict)
 
 
@@ -117,7 +118,7 @@ def clock_defines(device: Device | None) -> tuple[tuple[str, str], ...]:
     """Defines that give the profiling kernels a device clock (CLOCK_START()/CLOCK_ELAPSED(),
     preludes + common/scene.h), only where the device has one: GL_ARB_shader_clock in GLSL
     (glsl.py then adds the #extension line); NVIDIA's %clock register via inline PTX in OpenCL.
-    PoCL and other OpenCL devices get none: their clock field reads 0 (harness/profile.py says why)."""
+    PoCL and other OpenCL devices get none: their clock field reads 0 (lsbench/profile/heatmaps.py says why)."""
     if device is None:
         return ()
     info = device.info()

@@ -2,7 +2,7 @@
 
 `embree_closest(scene, rays)` returns `(prim_ids, t)`: int32 primitive ids (-1 = miss) and
 float32 distances (np.inf for a miss). Every backend result is checked against these arrays
-(see `harness.verify`).
+(see `lsbench.oracle.verify`).
 
 Facts about embreex 4.4 this module relies on (checked on this machine; check again when the
 version changes):
@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .rays import RaySet
-from .scene import Scene
+from lsbench.inputs.rays import RaySet
+from lsbench.inputs.scene import Scene
 
 # Bump when the meaning of cached arrays changes (build flags, tmin handling, ...).
 CACHE_FORMAT = 1

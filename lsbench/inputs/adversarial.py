@@ -60,8 +60,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rays import RaySet
-from .scene import Scene
+from lsbench.inputs.rays import RaySet
+from lsbench.inputs.scene import Scene
 
 RAY_CATEGORIES = ("axis", "vertex", "edge", "plane", "box", "voxel", "surface", "miss", "short", "far")
 MAX_TRIANGLES = 96  # triangles sampled per category (deterministic): keeps the set ~4k rays
@@ -386,7 +386,7 @@ def classify(scene: Scene, rays: RaySet, prim_ids, distances, ref_prim_ids, ref_
     """Per-ray labels for a backend's answers against Embree's: 'agree', 'tie' (verify's equal
     distance), 'tie:<reason>', 'embree-imprecise' or 'unexplained' (module docstring).
     Returns {'labels': array, 'counts': {label: n}, 'unexplained': [ray ids]}."""
-    from .verify import AGREE, TIE, classify as verify_classify, resolve_abs_tol
+    from lsbench.oracle.verify import AGREE, TIE, classify as verify_classify, resolve_abs_tol
 
     lo, hi = scene.bounds
     extent = float(np.linalg.norm(hi.astype(np.float64) - lo))
@@ -418,10 +418,10 @@ def classify(scene: Scene, rays: RaySet, prim_ids, distances, ref_prim_ids, ref_
 
 def check_structure(device, structure: str, scene: Scene, resolution, ls_n: int = 0, rays=None):
     """Build `structure` on `device`, trace the adversarial set, classify against Embree."""
-    import backends
-    from backends import BuildParams
+    from lsbench import backends
+    from lsbench.backends import BuildParams
 
-    from .groundtruth import embree_closest
+    from lsbench.oracle.embree import embree_closest
 
     if rays is None:
         rays, cats = adversarial_rays(scene)
@@ -440,11 +440,12 @@ def check_structure(device, structure: str, scene: Scene, resolution, ls_n: int 
 
 def structure_params(structure: str, cubic_res: int = 16, grid_res=(12, 16, 9)) -> dict:
     """Build parameters that every registered structure accepts in tests: octrees (cubic
-    structures) a power-of-two cube, Line Space structures (names ending in '-ls') N = 2,
+    structures) a power-of-two cube, Line Space structures N = 2,
     others a non-cubic grid."""
-    import backends
+    from lsbench import backends
 
-    ls_n = 2 if structure.endswith("-ls") else 0
-    if structure in backends.CUBIC_STRUCTURES:
+    info = backends.structure_info(structure)
+    ls_n = 2 if info.line_space else 0
+    if info.cubic_power_of_two:
         return {"resolution": (cubic_res,) * 3, "ls_n": ls_n}
     return {"resolution": tuple(grid_res), "ls_n": ls_n}

@@ -1,6 +1,6 @@
 """Results store: one directory per run.
 
-Layout (written by harness.runner, read by report and compare)::
+Layout (written by lsbench.running.runner, read by report and compare)::
 
     RUN_DIR/run.json        environment of the whole run (commit, dirty, date, host, python,
                             package versions, devices, scenario, command line)
@@ -13,24 +13,14 @@ case. When a key appears twice (a case re-run after a resume) the later record w
 """
 from __future__ import annotations
 
-import argparse
-import datetime as _dt
-import importlib.metadata
 import json
 import os
-import platform
-import socket
-import subprocess
-import sys
 import warnings
 from pathlib import Path
 
 RUN_INFO = "run.json"
 RESULTS = "results.jsonl"
 
-# Packages whose versions change measured numbers or accuracy (kernel compilers, Embree,
-# mesh loading); recorded with every run so two runs can be told apart.
-TRACKED_PACKAGES = ("numpy", "trimesh", "embreex", "moderngl", "pyopencl", "matplotlib")
 
 
 def write_run_info(run_dir, info: dict) -> Path:
@@ -95,46 +85,6 @@ def read_run(run_dir) -> tuple[dict, list[dict]]:
         except json.JSONDecodeError as e:
             warnings.warn(f"{info_path}: unreadable ({e}); using empty run info", stacklevel=2)
     return info, read_records(run_dir / RESULTS)
-
-
-def git_state(repo_dir=".") -> tuple[str | None, bool | None]:
-    """(commit sha, dirty) of the work tree at repo_dir; (None, None) outside a git repository.
-
-    Dirty counts modified tracked files and untracked, not ignored ones: both change what runs.
-    """
-    def git(*args):
-        return subprocess.run(["git", "-C", str(repo_dir), *args], capture_output=True,
-                              text=True, timeout=30)
-    try:
-        head = git("rev-parse", "HEAD")
-        if head.returncode != 0:
-            return None, None
-        status = git("status", "--porcelain")
-    except (OSError, subprocess.TimeoutExpired):
-        return None, None
-    return head.stdout.strip(), bool(status.stdout.strip()) if status.returncode == 0 else None
-
-
-def package_version(name: str) -> str | None:
-    try:
-        return importlib.metadata.version(name)
-    except importlib.metadata.PackageNotFoundError:
-        return None
-
-
-def environment_info() -> dict:
-    """What the machine and Python environment are; the runner adds devices and scenario."""
-    return {
-        "date": _dt.datetime.now(_dt.timezone.utc).astimezone().isoformat(timespec="seconds"),
-        "host": socket.gethostname(),
-        "machine": platform.machine(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "python": sys.version.split()[0],
-        "python_implementation": platform.python_implementation(),
-        "versions": {name: package_version(name) for name in TRACKED_PACKAGES},
-    }
 
 
 def scenario_name(info: dict) -> str | None:
@@ -215,34 +165,3 @@ def format_devices(devices: dict) -> str:
         name = d.get("device") if isinstance(d, dict) else d
         parts.append(f"{backend}={name}")
     return ", ".join(parts)
-
-
-def _cmd_runs(args) -> int:
-    runs = list_runs(args.root)
-    if not runs:
-        print(f"no runs under {args.root}")
-        return 0
-    for r in runs:
-        print(f"{r['dir']}  {r['date'] or '-'}  {format_commit(r['commit'], r['dirty'])}  "
-              f"[{format_devices(r['devices'])}]  ok={r['ok']} failed={r['failed']}")
-    return 0
-
-
-def register(subparsers) -> None:
-    """`lsbench runs [ROOT]`: one line per stored run."""
-    p = subparsers.add_parser("runs", help="list stored runs",
-                              description="List the run directories under ROOT (default reports).")
-    p.add_argument("root", nargs="?", default="reports", metavar="ROOT")
-    p.set_defaults(func=_cmd_runs)
-
-
-def main(argv=None) -> int:  # standalone use: python -m harness.store [ROOT]
-    parser = argparse.ArgumentParser(prog="python -m harness.store")
-    sub = parser.add_subparsers(dest="command", required=True)
-    register(sub)
-    args = parser.parse_args(["runs", *(argv if argv is not None else sys.argv[1:])])
-    return args.func(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

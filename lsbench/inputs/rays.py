@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.scene import Camera, Scene, arrays_hash
+from lsbench.inputs.scene import Camera, Scene, arrays_hash
 
 
 @dataclass
@@ -45,7 +45,7 @@ def primary_rays(scene: Scene, width: int, height: int, camera: Camera | None = 
     Row-major with row 0 at the TOP of the image: pixel (x, y) is ray y * width + x.
     Origins are the eye; directions are unit length (float32).
     """
-    from harness.scenes import default_camera  # scenes imports trimesh lazily; keep it lazy
+    from lsbench.inputs.scenes import default_camera  # scenes imports trimesh lazily; keep it lazy
 
     if width <= 0 or height <= 0:
         raise RayError(f"image size must be positive, got {width}x{height}")
@@ -127,7 +127,7 @@ RAY_SETS: dict[str, Callable[..., RaySet]] = {"primary": primary_rays}
 
 
 def _adversarial(scene: Scene, width: int, height: int, camera: Camera | None = None) -> RaySet:
-    from harness.adversarial import make_adversarial  # imports this module: keep it lazy
+    from lsbench.inputs.adversarial import make_adversarial  # imports this module: keep it lazy
 
     return make_adversarial(scene, width, height, camera)
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-SHADER_ROOT = Path(__file__).resolve().parent.parent / "shaders"
+from lsbench.paths import SHADER_ROOT
+
 
 # Scalar/vector types usable in buffers and uniforms, with numpy dtype and element size.
 # std430 and OpenCL agree on these layouts (no 3-component types in buffers on purpose).

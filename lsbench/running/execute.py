@@ -1,5 +1,5 @@
 """One case, end to end: scene -> rays -> Embree -> GPU build -> GPU trace -> verify -> timing
--> record. Runs inside a worker process (harness/runner.py) or directly (`lsbench trace`)."""
+-> record. Runs inside a worker process (lsbench/running/runner.py) or directly (`lsbench trace`)."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenario import Case, RunSettings
+from lsbench.inputs.scenario import Case, RunSettings
 
 
 def case_fields(case: Case) -> dict:
@@ -43,14 +43,14 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             heatmap_dir: str | None = None, scene=None, rays=None) -> dict:
     """Run one case and return its record. Driver limits and driver errors become a failed
     record with the reason; bad input (scene/rays) raises SceneError/RayError to the caller."""
-    import backends
-    from backends import BuildParams, DeviceError, DeviceLimitError
-    from backends.structures.base import parse_resolution
+    from lsbench import backends
+    from lsbench.backends import BuildParams, DeviceError, DeviceLimitError
+    from lsbench.backends.structures.base import parse_resolution
 
-    from .groundtruth import embree_closest
-    from .rays import make_rays
-    from .scenes import load_scene
-    from .verify import compare
+    from lsbench.oracle.embree import embree_closest
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenes import load_scene
+    from lsbench.oracle.verify import compare
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -62,7 +62,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     rec.update(env or {})
     ref_prim, ref_t = embree_closest(scene, rays)
     if settings.embree_timing:
-        from .groundtruth import embree_trace_seconds
+        from lsbench.oracle.embree import embree_trace_seconds
 
         emb = embree_trace_seconds(scene, rays, repeats=3)
         med = statistics.median(emb)
@@ -92,7 +92,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         timing = backends.time_trace(built, rays, settings.warmup, settings.repeats)
         rec.update(timing_fields(timing.seconds, timing.clock, rays.count, rays.width > 0))
         if heatmap_dir:
-            from . import profile
+            from lsbench.profile import heatmaps as profile
 
             rec["heatmaps"] = profile.write_heatmaps(built, rays, heatmap_dir, case.key)
             rec["work_clock"] = profile.clock_info(device)

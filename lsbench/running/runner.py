@@ -7,12 +7,11 @@ import json
 import multiprocessing as mp
 import os
 import signal
-import sys
 import time
 from pathlib import Path
 
-from .execute import execute, failed_record
-from .scenario import Case, RunSettings, Scenario
+from lsbench.running.execute import execute, failed_record
+from lsbench.inputs.scenario import Case, RunSettings, Scenario
 
 RESULTS = "results.jsonl"
 

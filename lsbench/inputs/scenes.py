@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.scene import Camera, Scene, SceneError
+from lsbench.inputs.scene import Camera, Scene, SceneError
 
 # ----------------------------------------------------------------------------------------------
 # public API

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from .device import Device, DeviceError, DeviceLimitError, Timing
-from .structures import CUBIC_STRUCTURES, STRUCTURES
+from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
 from .structures.base import BuildParams, Built, GridGeometry, Hits, with_work_counters
 
 BACKENDS = ("glsl", "opencl")
@@ -43,13 +43,12 @@ def structure_names() -> list[str]:
 
 def geometry_for(structure: str, scene, params: BuildParams) -> GridGeometry:
     lo, hi = scene.bounds
-    return GridGeometry.over_bounds(lo, hi, params.resolution, cubic=structure in CUBIC_STRUCTURES)
+    cubic = structure_info(structure).cubic_power_of_two or params.bounding_cube
+    return GridGeometry.over_bounds(lo, hi, params.resolution, cubic=cubic)
 
 
 def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
-    if structure not in STRUCTURES:
-        raise ValueError(f"unknown structure {structure!r}; choose one of {', '.join(STRUCTURES)}")
-    module = STRUCTURES[structure]
+    module = structure_info(structure).recipe
     geometry = geometry_for(structure, scene, params)
     module.prepare(device)  # compiles are never part of the build time
     _warm_up(device)

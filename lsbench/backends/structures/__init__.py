@@ -1,0 +1,45 @@
+"""The structure catalogue: one entry per structure, in display order (tables, charts, reports).
+
+Each entry's `recipe` has prepare(device) (compile what the build uses) and
+build(device, scene_buffers, n_tris, geometry, params) -> BuildResult; the build and traversal
+kernels of a structure are in shaders/common/<name>.h."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from . import esvo, grid, grid_ls, svo
+from .octree_ls import esvo_ls, svo_ls
+
+
+@dataclass(frozen=True)
+class StructureInfo:
+    name: str
+    recipe: object  # module or object with prepare() and build()
+    cubic_power_of_two: bool  # octrees: a cubic power-of-two resolution over the bounding cube
+    line_space: bool  # takes ls_n / ls_min_candidates
+    what: str  # one line, with the thesis section (Delgado Krämer 2019)
+
+
+CATALOGUE: tuple[StructureInfo, ...] = (
+    StructureInfo("grid", grid, False, False, "uniform grid, 3D-DDA (3.3.1)"),
+    StructureInfo("svo", svo, True, False, "node-pool octree, stack traversal (3.3.2, Alg. 1)"),
+    StructureInfo("esvo", esvo, True, False, "Laine & Karras descriptors, PUSH/ADVANCE/POP (5.2)"),
+    StructureInfo("grid-ls", grid_ls, False, True, "grid with a Line Space per non-empty voxel (3.3.3, Alg. 2)"),
+    StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
+    StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
+)
+STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
+
+
+def structure_info(name: str) -> StructureInfo:
+    """The catalogue entry of `name`; ValueError naming the known structures otherwise."""
+    try:
+        return STRUCTURES[name]
+    except KeyError:
+        raise ValueError(f"unknown structure {name!r}; choose one of {', '.join(STRUCTURES)}") from None
+
+
+def display_order(name: str) -> tuple[int, str]:
+    """Sort key: catalogue order, unknown names (old records) last."""
+    names = list(STRUCTURES)
+    return (names.index(name) if name in names else len(names), name)

@@ -1,0 +1,42 @@
+"""`lsbench compare BASE_RUN HEAD_RUN`: match two runs' cases by key; exit 1 on a regression."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+NAME = "compare"
+HELP = "compare two runs; exit 1 on regression"
+
+
+def add_verdict_arguments(p) -> None:
+    """--factor and --alpha, shared with compare-commits."""
+    from lsbench.compare.verdicts import DEFAULT_ALPHA, DEFAULT_FACTOR
+
+    p.add_argument("--factor", type=float, default=DEFAULT_FACTOR,
+                   help="slowdown / memory growth ratio that counts (default %(default)s)")
+    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+                   help="significance level of the one-sided U test (default %(default)s)")
+
+
+def setup_arguments(sub) -> None:
+    p = sub.add_parser(NAME, help=HELP,
+                       description="Match the cases of two run directories by key and flag regressions.")
+    p.add_argument("base", metavar="BASE_RUN")
+    p.add_argument("head", metavar="HEAD_RUN")
+    add_verdict_arguments(p)
+    p.add_argument("--report", action="store_true", help="also write HEAD_RUN/compare.html")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from lsbench.compare.verdicts import compare_runs, format_table, write_compare_html
+
+    try:
+        res = compare_runs(args.base, args.head, factor=args.factor, alpha=args.alpha)
+    except FileNotFoundError as exc:
+        print(f"lsbench compare: error: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(res))
+    if args.report:
+        print(f"wrote {write_compare_html(res, Path(args.head) / 'compare.html')}")
+    return res.exit_code

@@ -1,0 +1,39 @@
+"""`lsbench compare-commits REV_A REV_B SCENARIO`: run a scenario at two revisions and compare."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from lsbench.commands.compare import add_verdict_arguments
+
+NAME = "compare-commits"
+HELP = "run a scenario at two git revisions and compare"
+
+
+def setup_arguments(sub) -> None:
+    q = sub.add_parser(NAME, help=HELP,
+                       description="Create temporary git worktrees at REV_A and REV_B, run SCENARIO in each "
+                                   "(with its own code), then compare REV_A (base) with REV_B (head).")
+    q.add_argument("rev_a", metavar="REV_A")
+    q.add_argument("rev_b", metavar="REV_B")
+    q.add_argument("scenario", metavar="SCENARIO")
+    add_verdict_arguments(q)
+    q.add_argument("--out", default=None, metavar="DIR",
+                   help="where both runs go (default reports/compare-A-B-TIME)")
+    q.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from lsbench.compare.verdicts import compare_commits, format_table, write_compare_html
+
+    try:
+        res = compare_commits(args.rev_a, args.rev_b, args.scenario, factor=args.factor,
+                              out_dir=args.out, alpha=args.alpha)
+    except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
+        msg = getattr(exc, "stderr", None) or exc
+        print(f"lsbench compare-commits: error: {str(msg).strip()}", file=sys.stderr)
+        return 2
+    print(format_table(res))
+    print(f"wrote {write_compare_html(res, Path(res.head_dir) / 'compare.html')}")
+    return res.exit_code

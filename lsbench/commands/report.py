@@ -1,0 +1,26 @@
+"""`lsbench report RUN_DIR [--out DIR]`: write the HTML report, print index.html's path."""
+from __future__ import annotations
+
+import sys
+
+NAME = "report"
+HELP = "write the HTML report of a run"
+
+
+def setup_arguments(sub) -> None:
+    p = sub.add_parser(NAME, help=HELP, description="Write index.html and charts for RUN_DIR.")
+    p.add_argument("run_dir", metavar="RUN_DIR")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="report folder (default: RUN_DIR itself; images are copied when elsewhere)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from lsbench.report.page import write_report
+
+    try:
+        print(write_report(args.run_dir, args.out))
+    except FileNotFoundError as exc:
+        print(f"lsbench report: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
