@@ -42,6 +42,7 @@ def write_run_json(out: Path, scenario, argv) -> None:
         except Exception as exc:  # the cases will fail with the reason; run.json says it too
             devices[name] = {"device": None, "error": str(exc).splitlines()[0]}
     info.update({"commit": commit, "dirty": dirty, "devices": devices, "scenario": scenario.path,
+                 "settings": dataclasses.asdict(scenario.settings),
                  "scenario_name": scenario.name, "command": " ".join(argv)})
     write_run_info(out, info)
 

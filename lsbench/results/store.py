@@ -87,6 +87,36 @@ def read_run(run_dir) -> tuple[dict, list[dict]]:
     return info, read_records(run_dir / RESULTS)
 
 
+def run_settings(info: dict) -> dict:
+    """The run's [run] settings (RunSettings as a dict) from run.json; {} for runs written before
+    run.json held them."""
+    s = info.get("settings")
+    return dict(s) if isinstance(s, dict) else {}
+
+
+def run_devices(info: dict, records: list[dict]) -> dict[str, dict]:
+    """{backend: {"device", "driver", "backend_version"}} of a run: what run.json says, completed
+    by the records (a record's own device wins for that record: see record_device)."""
+    devices: dict[str, dict] = {}
+    for backend, d in (info.get("devices") or {}).items():
+        devices[backend] = dict(d) if isinstance(d, dict) else {"device": d}
+    for r in records:
+        if not r.get("backend"):
+            continue
+        d = devices.setdefault(r["backend"], {})
+        for f in ("device", "driver", "backend_version"):
+            if r.get(f) and not d.get(f):
+                d[f] = r[f]
+    return devices
+
+
+def record_device(rec: dict, info: dict) -> tuple[str | None, str | None]:
+    """(device, driver) one record ran on: its own fields, else run.json's for its backend."""
+    d = (info.get("devices") or {}).get(rec.get("backend"))
+    d = d if isinstance(d, dict) else {"device": d}
+    return rec.get("device") or d.get("device"), rec.get("driver") or d.get("driver")
+
+
 def scenario_name(info: dict) -> str | None:
     """The scenario's name from run.json, however the runner spelled it."""
     sc = info.get("scenario")
@@ -106,11 +136,7 @@ def _is_run_dir(path: Path) -> bool:
 def summarize_run(run_dir) -> dict:
     info, records = read_run(run_dir)
     ok = sum(1 for r in records if r.get("status") == "ok")
-    devices = info.get("devices") or {}
-    if not devices:  # fall back on the records
-        for r in records:
-            if r.get("backend") and r.get("device"):
-                devices.setdefault(r["backend"], {"device": r["device"], "driver": r.get("driver")})
+    devices = run_devices(info, records)
     commit = info.get("commit")
     if commit is None and records:
         commit = records[0].get("commit")
