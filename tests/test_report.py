@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lsbench.report import page as report
+from lsbench import cli
+from lsbench.report import charts, format, page as report
 from lsbench.results import store
 from lsbench.running import environment
 
@@ -136,18 +137,14 @@ def test_list_runs(tmp_path, capsys):
     assert [Path(r["dir"]).name for r in runs] == ["b-HEAD", "a"]  # undated first
     a = runs[1]
     assert a["ok"] == len(store.read_run(a["dir"])[1]) - 4 and a["failed"] == 4
-    import argparse
-    parser = argparse.ArgumentParser()
-    store.register(parser.add_subparsers())
-    args = parser.parse_args(["runs", str(tmp_path / "reports")])
-    assert args.func(args) == 0
+    assert cli.main(["runs", str(tmp_path / "reports")]) == 0
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 2 and "0123456789+dirty" in out[1] and "ok=80 failed=4" in out[1]
 
 
 def test_pareto_front():
     pts = [(0.0, 1.0), (0.0, 2.0), (0.1, 3.0), (0.2, 2.5), (0.3, 5.0)]
-    assert report.pareto_front(pts) == [1, 2, 4]
+    assert charts.pareto_front(pts) == [1, 2, 4]
 
 
 @pytest.fixture(scope="module")
@@ -199,23 +196,63 @@ def test_report_out_dir_copies_heatmaps(written_report, tmp_path):
     assert len(copied) == 1 and f"heatmaps/{copied[0].name}" in page
 
 
-def test_report_of_all_failed_and_empty_runs(tmp_path):
+def test_report_of_all_failed_run(tmp_path):
     d = tmp_path / "failed"
     store.append_record(d, fake_record(status="failed", reason="worker crashed: SIGSEGV"))
     page = report.write_report(d).read_text()
     assert "SIGSEGV" in page and "No successful case to plot" in page
+
+
+def test_report_of_empty_or_missing_folder_is_a_one_line_error(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
-    assert report.write_report(tmp_path / "empty").exists()
+    (tmp_path / "no-records").mkdir()
+    store.write_run_info(tmp_path / "no-records", {"commit": "c" * 40})  # run died before any case
+    (tmp_path / "no-records" / "results.jsonl").write_text("")
+    for name, why in (("empty", "no results.jsonl"), ("no-records", "results.jsonl is empty"),
+                      ("missing", "no run directory")):
+        assert cli.main(["report", str(tmp_path / name)]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "" and why in captured.err
+        assert captured.err.startswith("lsbench report: error: ") and captured.err.count("\n") == 1
+        assert not (tmp_path / name / "index.html").exists()
+
+
+def test_report_reads_min_agreement_from_run_settings(tmp_path):
+    d = tmp_path / "run"
+    store.write_run_info(d, {"commit": "c" * 40, "settings": {"min_agreement": 0.99}})
+    store.append_record(d, fake_record(agreement=0.995))
+    assert report.min_agreement(store.read_run(d)[0]) == 0.99
+    page = report.write_report(d).read_text()
+    assert "agreement with Embree below 0.99." in page
+    t1 = page[page.index("id='table1'"):page.index("id='table2'")]
+    assert "agree 99.5" in t1 and "class='warn'" not in t1  # 0.995 passes a 0.99 threshold
+    # a run that states no rate threshold (zero unexplained disagreements) marks nothing amber
+    assert report.min_agreement({"settings": {"min_agreement": None}}) is None
+    # folders written before run.json held the settings keep the old default
+    assert report.min_agreement({"commit": "c" * 40}) == 0.9999
+    assert report.min_agreement({"run": {"min_agreement": 0.9}}) == 0.9
 
 
 def test_report_cli(written_report, tmp_path, capsys):
-    import argparse
     run, _, _ = written_report
-    parser = argparse.ArgumentParser()
-    report.register(parser.add_subparsers())
-    args = parser.parse_args(["report", str(run), "--out", str(tmp_path / "o")])
-    assert args.func(args) == 0
+    assert cli.main(["report", str(run), "--out", str(tmp_path / "o")]) == 0
     assert capsys.readouterr().out.strip() == str(tmp_path / "o" / "index.html")
+
+
+def test_format_one_slug_and_one_text_table():
+    assert format.slug("sponza|primary|grid|glsl|64|N0") == "sponza_primary_grid_glsl_64_N0"
+    assert format.slug("/data/a b.ply", "primary") == "data_a_b.ply-primary"
+    assert format.slug("|||") == "x" and format.slug("", empty="case") == "case"
+    lines = format.text_table(["name", "rays/s", "notes"],
+                              [["grid", "1.2 M", ""], ["a-very-long-structure-name", "950", "faster"]],
+                              right={1}, max_width={0: 8})
+    assert lines == ["name      rays/s  notes",
+                     "--------  ------  ------",
+                     "grid       1.2 M",
+                     "a-very-…     950  faster"]
+    assert format.fmt_si(1.234e6, "rays/s") == "1.23 Mrays/s" and format.fmt_si(None) == "-"
+    assert format.fmt_mib(3 * 2 ** 20) == "3" and format.fmt_pct(0.9995) == "99.95%"
+    assert format.fmt_pct(0.99995) == "99.995%" and format.fmt_pct(1.0) == "100%"
 
 
 @pytest.mark.skipif(not Path(CHROMIUM).exists(),

@@ -1,4 +1,5 @@
-"""`lsbench report RUN_DIR [--out DIR]`: write the HTML report, print index.html's path."""
+"""`lsbench report RUN_DIR [--out DIR]`: write the HTML report, print index.html's path; exit 2
+with a one-line error when RUN_DIR is missing or holds no case record."""
 from __future__ import annotations
 
 import sys
@@ -16,11 +17,11 @@ def setup_arguments(sub) -> None:
 
 
 def run(args) -> int:
-    from lsbench.report.page import write_report
+    from lsbench.report.page import EmptyRunError, write_report
 
     try:
         print(write_report(args.run_dir, args.out))
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, EmptyRunError) as exc:  # no page of empty tables
         print(f"lsbench report: error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -111,7 +111,9 @@ def counter_images(work: np.ndarray, shape: tuple[int, int]) -> dict[str, np.nda
 
 
 def case_slug(case_key: str) -> str:
-    return re.sub(r"[^A-Za-z0-9.\-]+", "_", case_key).strip("_") or "case"
+    from lsbench.report.format import slug
+
+    return slug(case_key, empty="case")
 
 
 # ---- files ------------------------------------------------------------------------------------

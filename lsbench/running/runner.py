@@ -181,6 +181,8 @@ def progress_text(rec: dict) -> str:
 
 
 def summary_table(records: list[dict]) -> str:
+    from lsbench.report.format import text_table
+
     head = ["scene", "rays", "structure", "backend", "res", "N", "status", "agreement", "Mrays/s",
             "FPS", "MiB", "build s"]
     rows = []
@@ -196,10 +198,8 @@ def summary_table(records: list[dict]) -> str:
             f"{r['memory_bytes'] / 2**20:.2f}" if ok else "-",
             f"{r['build_seconds']:.3f}" if ok else "-",
         ])
-    widths = [max(len(h), *(len(str(row[i])) for row in rows)) if rows else len(h) for i, h in enumerate(head)]
-    line = lambda cells: "  ".join(str(c).ljust(w) for c, w in zip(cells, widths))  # noqa: E731
-    out = [line(head), line(["-" * w for w in widths])] + [line(r) for r in rows]
-    failed = [r for r in records if r.get("status") != "ok"]
-    for r in failed:
-        out.append(f"FAILED {r.get('key')}: {r.get('reason')}")
+    out = text_table(head, rows)
+    for r in records:
+        if r.get("status") != "ok":
+            out.append(f"FAILED {r.get('key')}: {r.get('reason')}")
     return "\n".join(out)

@@ -1,0 +1,48 @@
+"""What the report reads from a case record: did it run, is it a Line Space case, how a person
+names it (scene, resolution, case label) and in which order resolutions go. Structures are
+ordered by the catalogue (lsbench.backends.structures.display_order)."""
+from __future__ import annotations
+
+import math
+import os
+import re
+
+from lsbench.backends.structures import STRUCTURES
+
+
+def succeeded(rec) -> bool:
+    return rec.get("status") == "ok"
+
+
+def has_line_space(rec) -> bool:
+    info = STRUCTURES.get(str(rec.get("structure", "")))
+    return bool(rec.get("ls_n")) or (info is not None and info.line_space)
+
+
+def resolution_order(res) -> tuple:
+    """Sort key: voxel count, then the text (64 < 64x64x128 < 128)."""
+    dims = [int(x) for x in re.findall(r"\d+", str(res))] or [0]
+    return (math.prod(dims), str(res))
+
+
+def resolution_label(res) -> str:
+    s = str(res)
+    return f"{s}³" if s.isdigit() else s
+
+
+def scene_name(rec) -> str:
+    """The scene's file stem, or the built-in name."""
+    s = str(rec.get("scene", "?"))
+    base = os.path.basename(s.rstrip("/")) or s
+    return os.path.splitext(base)[0] if "." in base else base
+
+
+def case_label(rec, with_scene=False) -> str:
+    """"grid 64³ glsl", "svo-ls 32³ N=2 opencl"; with_scene puts the scene first."""
+    parts = [rec.get("structure", "?"), resolution_label(rec.get("resolution", "?"))]
+    if rec.get("ls_n"):
+        parts.append(f"N={rec['ls_n']}")
+    parts.append(rec.get("backend", "?"))
+    if with_scene:
+        parts.insert(0, scene_name(rec))
+    return " ".join(str(p) for p in parts)
