@@ -1,8 +1,7 @@
 """Regression comparison on hand-written run directories (no GPU), and compare-commits on a
-throw-away git repository whose fake `lsbench.cli run` writes records."""
+throw-away git repository whose fake `python -m lsbench run` writes records."""
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import subprocess
@@ -13,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lsbench import cli, paths
+from lsbench.compare import commits, stats
 from lsbench.compare import verdicts as compare
 from lsbench.results import store
 
@@ -20,7 +21,7 @@ GL_DEV = "llvmpipe (LLVM 15.0.6, 256 bits)"
 
 
 def record(key, trace=0.010, noise=0.01, repeats=5, agreement=1.0, status="ok", memory=1 << 20,
-           device=GL_DEV, seed=0, ray_count=10000):
+           device=GL_DEV, seed=0, ray_count=10000, scene_hash="5ce7e0", rays_hash="4a75"):
     rng = np.random.default_rng(seed)
     rec = {"key": key, "scene": "quad", "structure": key.split("|")[0], "backend": "glsl",
            "resolution": "64", "ls_n": 0, "rays": "primary", "ray_count": ray_count,
@@ -31,7 +32,8 @@ def record(key, trace=0.010, noise=0.01, repeats=5, agreement=1.0, status="ok", 
         med = float(np.median(times))
         rec.update(agreement=agreement, trace_seconds=med, trace_seconds_all=times,
                    trace_seconds_min=min(times), trace_seconds_max=max(times),
-                   rays_per_second=ray_count / med, fps=1 / med, memory_bytes=memory)
+                   rays_per_second=ray_count / med, fps=1 / med, memory_bytes=memory,
+                   scene_hash=scene_hash, rays_hash=rays_hash)  # a failed record has none
     else:
         rec.update(agreement=None, trace_seconds=None, trace_seconds_all=[],
                    rays_per_second=None, memory_bytes=None)
@@ -57,20 +59,20 @@ def base_run(tmp_path, seed=0):
 
 def test_mann_whitney_exact_and_normal():
     x, y = [1, 2, 3, 4, 5], [6, 7, 8, 9, 10]
-    u, p = compare.mann_whitney_less(x, y)
+    u, p = stats.mann_whitney_less(x, y)
     assert u == 0 and p == pytest.approx(1 / math.comb(10, 5))
-    u, p = compare.mann_whitney_less(y, x)
+    u, p = stats.mann_whitney_less(y, x)
     assert u == 25 and p == pytest.approx(1.0)
     # one overlapping pair: 2 orderings out of 252 are at least as extreme
-    u, p = compare.mann_whitney_less([1, 2, 3, 4, 6.5], [6, 7, 8, 9, 10])
+    u, p = stats.mann_whitney_less([1, 2, 3, 4, 6.5], [6, 7, 8, 9, 10])
     assert u == 1 and p == pytest.approx(2 / 252)
     # counts of the exact distribution add up to C(m+n, m) and are symmetric
-    c = compare._u_counts(4, 6)
+    c = stats._u_counts(4, 6)
     assert sum(c) == math.comb(10, 4) and c == c[::-1]
     # ties: normal approximation, still says clearly apart samples differ
-    u, p = compare.mann_whitney_less([1, 1, 2, 2, 3] * 4, [5, 5, 6, 6, 7] * 4)
+    u, p = stats.mann_whitney_less([1, 1, 2, 2, 3] * 4, [5, 5, 6, 6, 7] * 4)
     assert u == 0 and p < 1e-6
-    _, p = compare.mann_whitney_less([1, 2, 3], [1, 2, 3])
+    _, p = stats.mann_whitney_less([1, 2, 3], [1, 2, 3])
     assert p > 0.3
 
 
@@ -136,8 +138,8 @@ def test_improvements_and_added_cases_are_not_regressions(tmp_path):
                                      record("old|64")])
     head = write(tmp_path / "head", [record("grid|64", trace=0.005, agreement=1.0, seed=5),
                                      record("svo|64", seed=6), record("new|64", seed=7)])
-    res = compare.compare_runs(base, head)
-    assert not res.has_regression
+    res = compare.compare_runs(base, head, only_common=True)
+    assert not res.has_regression and res.exit_code == 0
     by = {c.key: c for c in res.cases}
     assert "faster" in by["grid|64"].notes and "fixed (failed in base)" in by["svo|64"].notes
     assert res.only_base == ["old|64"] and res.only_head == ["new|64"]
@@ -166,23 +168,86 @@ def test_truncated_head_is_read(tmp_path):
     with pytest.warns(UserWarning, match="truncated"):
         res = compare.compare_runs(base, head)
     assert res.only_base == ["esvo|64"] and not res.has_regression
+    assert res.exit_code == 1  # the case lost with the truncated line is missing from head
 
 
 def test_cli_compare_exit_code_and_html(tmp_path, capsys):
     base = base_run(tmp_path)
     head = write(tmp_path / "head", [record("grid|64", trace=0.013, seed=60),
                                      record("svo|64", seed=61), record("esvo|64", seed=62)])
-    parser = argparse.ArgumentParser()
-    sub = parser.add_subparsers()
-    compare.register(sub)
-    args = parser.parse_args(["compare", str(base), str(head), "--report"])
-    assert args.func(args) == 1
+    assert cli.main(["compare", str(base), str(head), "--report"]) == 1
     out = capsys.readouterr().out
     assert "REGRESSION speed" in out and "compare.html" in out
     page = (head / "compare.html").read_text()
     assert "class='reg'" in page and "grid|64" in page
-    args = parser.parse_args(["compare", str(base), str(head), "--factor", "1.5"])
-    assert args.func(args) == 0
+    assert cli.main(["compare", str(base), str(head), "--factor", "1.5"]) == 0
+
+
+# ---------------------------------------------------------------- a comparison that can't lie
+
+def test_nothing_in_common_fails(tmp_path, capsys):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record("grid|128", seed=70), record("svo|128", seed=71)])
+    res = compare.compare_runs(base, head, only_common=True)
+    assert not res.has_regression and res.exit_code == 1
+    assert res.problems[0].startswith("nothing matched: no case key is in both runs (base has 3 cases, head 2)")
+    assert cli.main(["compare", str(base), str(head), "--only-common"]) == 1
+    out = capsys.readouterr().out
+    assert "0 cases compared, 0 regressions" in out and "compare failed: nothing matched" in out
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert compare.compare_runs(empty, empty).exit_code == 1  # two empty runs match nothing either
+
+
+def test_head_lacking_base_cases_fails_unless_only_common(tmp_path, capsys):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record("grid|64", seed=80)])
+    res = compare.compare_runs(base, head)
+    assert not res.has_regression and res.only_base == ["svo|64", "esvo|64"]
+    assert res.exit_code == 1
+    assert res.problems == ["head lacks 2 of base's cases (first: svo|64); --only-common compares "
+                            "the common ones only"]
+    assert cli.main(["compare", str(base), str(head)]) == 1
+    out = capsys.readouterr().out
+    assert "compare failed: head lacks 2 of base's cases" in out and out.count("MISSING") == 2
+    assert cli.main(["compare", str(base), str(head), "--only-common"]) == 0
+    # cases new in head that ran are fine
+    head2 = write(tmp_path / "head2", [record(k, seed=90 + i) for i, k in enumerate(KEYS + ["bvh|64"])])
+    assert compare.compare_runs(base, head2).exit_code == 0
+
+
+def test_case_new_in_head_that_failed_is_a_failure(tmp_path, capsys):
+    base = base_run(tmp_path)
+    head = write(tmp_path / "head", [record(k, seed=100 + i) for i, k in enumerate(KEYS)]
+                 + [record("grid-ls|64", status="failed")])
+    res = compare.compare_runs(base, head)
+    new = next(c for c in res.cases if c.key == "grid-ls|64")
+    assert new.verdicts == ["failure"] and new.status == "none->failed"
+    assert "new and failed: worker timed out" in "; ".join(new.notes)
+    assert res.exit_code == 1 and res.problems == ["1 regressions"]
+    assert cli.main(["compare", str(base), str(head)]) == 1
+    assert "REGRESSION failure" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("changed, what", [({"scene_hash": "0dd5ce"}, "scene differs (scene_hash 5ce7e0 in base, 0dd5ce in head)"),
+                                           ({"rays_hash": "0dd4a7"}, "ray set differs (rays_hash 4a75 in base, 0dd4a7 in head)")])
+def test_same_key_on_different_inputs_is_refused(tmp_path, capsys, changed, what):
+    base = base_run(tmp_path)
+    # identical figures: only the inputs differ, so nothing but the refusal can fail this
+    same = [record(k, seed=i) for i, k in enumerate(KEYS)]
+    head = write(tmp_path / "head", [dict(same[0], **changed)] + same[1:])
+    res = compare.compare_runs(base, head)
+    grid = next(c for c in res.cases if c.key == "grid|64")
+    assert grid.refused == what and not grid.comparable and grid.speed_ratio is None
+    assert [c.key for c in res.refused] == ["grid|64"] and not res.has_regression
+    assert res.exit_code == 1 and res.problems == ["1 cases refused: same key, different inputs"]
+    assert cli.main(["compare", str(base), str(head), "--report"]) == 1
+    out = capsys.readouterr().out
+    assert "REFUSED" in out and what in out and "2 cases compared, 0 regressions, 1 refused" in out
+    assert what in (head / "compare.html").read_text()
+    # a failed record carries no hashes: that alone is no refusal
+    head_failed = write(tmp_path / "head-failed", [record("grid|64", status="failed")] + same[1:])
+    assert not compare.compare_runs(base, head_failed).refused
 
 
 # ---------------------------------------------------------------- compare-commits
@@ -200,6 +265,7 @@ times = [0.01 / SPEED * (1 + 0.001 * i) for i in range(5)]
 rec = {"key": "grid|64", "status": "ok", "backend": "glsl", "device": "fake", "ray_count": 1000,
        "trace_seconds": times[2], "trace_seconds_all": times, "rays_per_second": 1000 / times[2],
        "agreement": 1.0, "memory_bytes": 100, "scenario_text": scenario,
+       "scenes": os.environ.get("LSBENCH_SCENES"),
        "code_dir": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
 (out / "run.json").write_text(json.dumps({"commit": "x", "devices": {"glsl": {"device": "fake"}}}))
 (out / "results.jsonl").write_text(json.dumps(rec) + "\\n")
@@ -213,7 +279,7 @@ def _git(repo, *args):
 
 @pytest.mark.skipif(subprocess.run(["git", "--version"], capture_output=True).returncode != 0,
                     reason="git not installed")
-def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path):
+def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path, monkeypatch):
     repo = tmp_path / "repo"
     (repo / "lsbench").mkdir(parents=True)
     _git(tmp_path, "init", "-q", str(repo))
@@ -229,7 +295,9 @@ def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path):
     scenario = tmp_path / "s.toml"
     scenario.write_text('name = "tiny"\n')
 
-    res = compare.compare_commits("HEAD~1", "HEAD", scenario, out_dir=tmp_path / "cmp",
+    # $SCENES is the calling checkout's scenes folder, also when LSBENCH_SCENES is not exported
+    monkeypatch.delenv("LSBENCH_SCENES", raising=False)
+    res = commits.compare_commits("HEAD~1", "HEAD", scenario, out_dir=tmp_path / "cmp",
                                   repo_dir=repo, stream=sys.stderr)
     c = res.cases[0]
     assert c.verdicts == ["speed"] and c.speed_ratio == pytest.approx(0.7)
@@ -239,9 +307,11 @@ def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path):
     _, recs = store.read_run(tmp_path / "cmp" / dirs[0])
     assert recs[0]["scenario_text"] == 'name = "tiny"\n'
     assert not recs[0]["code_dir"].startswith(str(repo))  # ran the worktree's code
+    for d in dirs:
+        assert store.read_run(tmp_path / "cmp" / d)[1][0]["scenes"] == str(paths.scenes_dir().resolve())
     # worktrees are gone
     assert _git(repo, "worktree", "list").count("\n") == 0
     assert not Path(recs[0]["code_dir"]).exists()
 
     with pytest.raises(ValueError, match="unknown revision"):
-        compare.compare_commits("nope", "HEAD", scenario, repo_dir=repo, out_dir=tmp_path / "x")
+        commits.compare_commits("nope", "HEAD", scenario, repo_dir=repo, out_dir=tmp_path / "x")

@@ -1,21 +1,25 @@
-"""`lsbench compare BASE_RUN HEAD_RUN`: match two runs' cases by key; exit 1 on a regression."""
+"""`lsbench compare BASE_RUN HEAD_RUN`: match two runs' cases by key; exit 1 on a regression, a
+refused case (same key, different scene or rays), when nothing matched, or when head lacks
+base's cases (unless --only-common)."""
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
 NAME = "compare"
-HELP = "compare two runs; exit 1 on regression"
+HELP = "compare two runs; exit 1 on a regression, a refused or a missing case"
 
 
 def add_verdict_arguments(p) -> None:
-    """--factor and --alpha, shared with compare-commits."""
+    """--factor, --alpha and --only-common, shared with compare-commits."""
     from lsbench.compare.verdicts import DEFAULT_ALPHA, DEFAULT_FACTOR
 
     p.add_argument("--factor", type=float, default=DEFAULT_FACTOR,
                    help="slowdown / memory growth ratio that counts (default %(default)s)")
     p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
                    help="significance level of the one-sided U test (default %(default)s)")
+    p.add_argument("--only-common", action="store_true",
+                   help="compare the cases both runs have; head lacking base's cases is no failure")
 
 
 def setup_arguments(sub) -> None:
@@ -32,7 +36,8 @@ def run(args) -> int:
     from lsbench.compare.verdicts import compare_runs, format_table, write_compare_html
 
     try:
-        res = compare_runs(args.base, args.head, factor=args.factor, alpha=args.alpha)
+        res = compare_runs(args.base, args.head, factor=args.factor, alpha=args.alpha,
+                           only_common=args.only_common)
     except FileNotFoundError as exc:
         print(f"lsbench compare: error: {exc}", file=sys.stderr)
         return 2

@@ -14,7 +14,8 @@ HELP = "run a scenario at two git revisions and compare"
 def setup_arguments(sub) -> None:
     q = sub.add_parser(NAME, help=HELP,
                        description="Create temporary git worktrees at REV_A and REV_B, run SCENARIO in each "
-                                   "(with its own code), then compare REV_A (base) with REV_B (head).")
+                                   "(with its own code, and $SCENES = this checkout's scenes folder), then "
+                                   "compare REV_A (base) with REV_B (head).")
     q.add_argument("rev_a", metavar="REV_A")
     q.add_argument("rev_b", metavar="REV_B")
     q.add_argument("scenario", metavar="SCENARIO")
@@ -25,11 +26,12 @@ def setup_arguments(sub) -> None:
 
 
 def run(args) -> int:
-    from lsbench.compare.verdicts import compare_commits, format_table, write_compare_html
+    from lsbench.compare.commits import compare_commits
+    from lsbench.compare.verdicts import format_table, write_compare_html
 
     try:
         res = compare_commits(args.rev_a, args.rev_b, args.scenario, factor=args.factor,
-                              out_dir=args.out, alpha=args.alpha)
+                              out_dir=args.out, alpha=args.alpha, only_common=args.only_common)
     except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
         msg = getattr(exc, "stderr", None) or exc
         print(f"lsbench compare-commits: error: {str(msg).strip()}", file=sys.stderr)

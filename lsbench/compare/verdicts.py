@@ -1,115 +1,45 @@
-"""Regression comparison between two runs (or two commits).
+"""Regression comparison between two runs: case diffs, verdicts, text and HTML output.
 
 Cases are matched by their `key`. Per case: ratio of rays/s (head / base), ratio of bytes, change
 in agreement. Verdicts:
 
 - speed: a regression only when head is slower than base by more than `factor` AND the repeats
   say the slowdown is real: either the repeat ranges do not overlap (head's best repeat is slower
-  than base's worst) or a one-sided Mann-Whitney U test on the per-repeat rays/s gives
-  p < alpha. (A run with a single repeat per case has no spread to go on: there the factor
-  alone decides, and the table says n=1.) This is the approach of asv (airspeed velocity):
-  a ratio threshold plus a statistical check, so noise on a shared CI machine does not fail
-  the gate.
+  than base's worst) or a one-sided Mann-Whitney U test (lsbench/compare/stats.py) on the
+  per-repeat rays/s gives p < alpha. (A run with a single repeat per case has no spread to go
+  on: there the factor alone decides, and the table says n=1.) This is the approach of asv
+  (airspeed velocity): a ratio threshold plus a statistical check, so noise on a shared CI
+  machine does not fail the gate.
 - accuracy: any drop in agreement is a regression (agreement is a count ratio: deterministic).
-- failure: ok in base, failed in head.
+- failure: ok in base and failed in head, or new in head and failed.
 - memory: bytes grew by more than `factor` (deterministic, so no statistics).
+
+A key names a case, but two records under one key are the same case only when they ran on the
+same inputs: a pair whose scene_hash or rays_hash differ is refused, with the reason, not
+compared. The comparison fails (exit 1) on any regression or refusal, when no case is in both
+runs, and when head lacks cases of base (a run that lost cases must not read as "0
+regressions"; `only_common` compares the common cases only).
 
 Runs whose cases ran on different devices get a warning and no verdicts: figures from two
 devices are never compared as if they were one (DESIGN.md, Environments).
 """
 from __future__ import annotations
 
-import datetime as _dt
 import html
-import math
-import os
-import re
-import shutil
-import subprocess
-import sys
-import tempfile
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from lsbench.results.store import format_commit, read_run
+from lsbench.compare.stats import mann_whitney_less
+from lsbench.report.format import fmt_si, text_table
+from lsbench.results.store import format_commit, read_run, record_device, run_devices
 
 DEFAULT_FACTOR = 1.1
 DEFAULT_ALPHA = 0.01
 AGREEMENT_EPS = 1e-12  # float noise of a ratio of counts, not a tolerance
+INPUT_HASHES = (("scene_hash", "scene"), ("rays_hash", "ray set"))
 
-
-# ---------------------------------------------------------------- Mann-Whitney U (no scipy)
-
-@lru_cache(maxsize=None)
-def _u_counts(m: int, n: int) -> tuple:
-    """Number of orderings of m x's and n y's with U_x = u, u = 0..m*n (no ties).
-
-    Recurrence on the largest value: it is an x (which then beats all n y's: U grows by n) or a
-    y (U unchanged): f(m, n, u) = f(m-1, n, u-n) + f(m, n-1, u).
-    """
-    if m == 0 or n == 0:
-        return (1,)
-    a = _u_counts(m - 1, n)
-    b = _u_counts(m, n - 1)
-    out = [0] * (m * n + 1)
-    for u, c in enumerate(a):
-        out[u + n] += c
-    for u, c in enumerate(b):
-        out[u] += c
-    return tuple(out)
-
-
-def _rank(values: np.ndarray) -> np.ndarray:
-    """Ranks 1..N, ties get the mean of their ranks."""
-    order = np.argsort(values, kind="mergesort")
-    ranks = np.empty(len(values), dtype=float)
-    sorted_vals = values[order]
-    i = 0
-    while i < len(values):
-        j = i
-        while j + 1 < len(values) and sorted_vals[j + 1] == sorted_vals[i]:
-            j += 1
-        ranks[order[i:j + 1]] = (i + j) / 2.0 + 1.0
-        i = j + 1
-    return ranks
-
-
-def mann_whitney_less(x, y) -> tuple[float, float]:
-    """One-sided Mann-Whitney U test, alternative: x tends to be smaller than y.
-
-    Returns (U_x, p) with U_x = #pairs x > y (+1/2 per tie). Exact null distribution when there
-    are no ties and the samples are small (the usual 3..30 repeats); otherwise the normal
-    approximation with tie and continuity correction.
-    """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    m, n = len(x), len(y)
-    if m == 0 or n == 0:
-        return float("nan"), 1.0
-    both = np.concatenate([x, y])
-    ranks = _rank(both)
-    u_x = float(ranks[:m].sum() - m * (m + 1) / 2.0)
-    has_ties = len(np.unique(both)) < len(both)
-    if not has_ties and m <= 30 and n <= 30:
-        counts = _u_counts(m, n)
-        total = math.comb(m + n, m)
-        p = sum(counts[: int(round(u_x)) + 1]) / total
-        return u_x, min(1.0, p)
-    mu = m * n / 2.0
-    N = m + n
-    _, t = np.unique(both, return_counts=True)
-    tie_term = float((t ** 3 - t).sum()) / (N * (N - 1)) if N > 1 else 0.0
-    var = m * n / 12.0 * ((N + 1) - tie_term)
-    if var <= 0:
-        return u_x, 1.0
-    z = (u_x - mu + 0.5) / math.sqrt(var)
-    return u_x, 0.5 * math.erfc(-z / math.sqrt(2.0))
-
-
-# ---------------------------------------------------------------- comparison
 
 @dataclass
 class CaseDiff:
@@ -126,10 +56,15 @@ class CaseDiff:
     verdicts: list[str] = field(default_factory=list)  # regression kinds
     notes: list[str] = field(default_factory=list)      # improvements, info, no-verdict reasons
     comparable: bool = True
+    refused: str = ""  # why the two records are not one case (different inputs); "" if they are
 
     @property
     def regression(self) -> bool:
         return bool(self.verdicts)
+
+    @property
+    def in_both(self) -> bool:
+        return self.base is not None and self.head is not None
 
     @property
     def status(self) -> str:
@@ -149,6 +84,7 @@ class CompareResult:
     cases: list[CaseDiff]
     warnings: list[str]
     verdicts_given: bool  # False when the runs are from different devices
+    only_common: bool = False  # head lacking base's cases is then no failure
 
     @property
     def regressions(self) -> list[CaseDiff]:
@@ -159,6 +95,10 @@ class CompareResult:
         return bool(self.regressions)
 
     @property
+    def refused(self) -> list[CaseDiff]:
+        return [c for c in self.cases if c.refused]
+
+    @property
     def only_base(self) -> list[str]:
         return [c.key for c in self.cases if c.head is None]
 
@@ -167,8 +107,25 @@ class CompareResult:
         return [c.key for c in self.cases if c.base is None]
 
     @property
+    def problems(self) -> list[str]:
+        """Why the comparison fails, one line each; empty when it passes."""
+        out = []
+        if not any(c.in_both for c in self.cases):
+            out.append(f"nothing matched: no case key is in both runs (base has "
+                       f"{sum(c.base is not None for c in self.cases)} cases, head "
+                       f"{sum(c.head is not None for c in self.cases)})")
+        if self.regressions:
+            out.append(f"{len(self.regressions)} regressions")
+        if self.refused:
+            out.append(f"{len(self.refused)} cases refused: same key, different inputs")
+        if self.only_base and not self.only_common:
+            out.append(f"head lacks {len(self.only_base)} of base's cases (first: "
+                       f"{self.only_base[0]}); --only-common compares the common ones only")
+        return out
+
+    @property
     def exit_code(self) -> int:
-        return 1 if self.has_regression else 0
+        return 1 if self.problems else 0
 
     def to_text(self) -> str:
         return format_table(self)
@@ -195,18 +152,15 @@ def _rps(rec: dict) -> float | None:
     return None
 
 
-def _device_of(rec: dict, info: dict):
-    if rec.get("device"):
-        return rec.get("device")
-    d = (info.get("devices") or {}).get(rec.get("backend"))
-    return d.get("device") if isinstance(d, dict) else d
-
-
-def _driver_of(rec: dict, info: dict):
-    if rec.get("driver"):
-        return rec.get("driver")
-    d = (info.get("devices") or {}).get(rec.get("backend"))
-    return d.get("driver") if isinstance(d, dict) else None
+def different_inputs(base: dict, head: dict) -> str:
+    """Why two records of one key ran on different inputs ("" when they did not, or when a
+    record does not say: a failed case may have no hashes)."""
+    reasons = []
+    for field_name, what in INPUT_HASHES:
+        hb, hh = base.get(field_name), head.get(field_name)
+        if hb and hh and hb != hh:
+            reasons.append(f"{what} differs ({field_name} {hb} in base, {hh} in head)")
+    return "; ".join(reasons)
 
 
 def _diff_case(c: CaseDiff, factor: float, alpha: float) -> None:
@@ -254,71 +208,75 @@ def _diff_case(c: CaseDiff, factor: float, alpha: float) -> None:
             c.verdicts.append("accuracy")
 
 
+def _one_sided_case(c: CaseDiff) -> None:
+    """A case in one run only: no figures to compare, but a new case that fails is a failure."""
+    c.comparable = False
+    if c.base is not None:
+        c.notes.append("only in base")
+        return
+    c.notes.append("only in head")
+    if c.head.get("status") != "ok":
+        c.verdicts.append("failure")
+        c.notes.append(f"new and failed: {c.head.get('reason', '')}".strip())
+
+
+def _environment_warnings(base_info, base_recs, head_info, head_recs, common) -> tuple[list, bool]:
+    """(warnings, verdicts_given): devices per backend (run.json completed by the records) and
+    per common case; a driver change is a warning only."""
+    devices, drivers = set(), set()
+    for base, head in common:
+        (db, vb), (dh, vh) = record_device(base, base_info), record_device(head, head_info)
+        if db and dh and db != dh:
+            devices.add((base.get("backend"), db, dh))
+        if vb and vh and vb != vh:
+            drivers.add((base.get("backend"), vb, vh))
+    bd, hd = run_devices(base_info, base_recs), run_devices(head_info, head_recs)
+    for backend in bd.keys() & hd.keys():
+        db, dh = bd[backend].get("device"), hd[backend].get("device")
+        if db and dh and db != dh:
+            devices.add((backend, db, dh))
+    warnings = [f"different devices for {backend}: base '{db}' vs head '{dh}' — figures are not "
+                f"comparable; no regression verdicts given"
+                for backend, db, dh in sorted(devices, key=str)]
+    warnings += [f"driver changed for {backend}: '{vb}' -> '{vh}' (timings may move for that "
+                 f"reason alone)" for backend, vb, vh in sorted(drivers, key=str)]
+    return warnings, not devices
+
+
 def compare_runs(base_dir, head_dir, factor: float = DEFAULT_FACTOR,
-                 alpha: float = DEFAULT_ALPHA) -> CompareResult:
+                 alpha: float = DEFAULT_ALPHA, only_common: bool = False) -> CompareResult:
     base_info, base_recs = read_run(base_dir)
     head_info, head_recs = read_run(head_dir)
     base_by = {r["key"]: r for r in base_recs if "key" in r}
     head_by = {r["key"]: r for r in head_recs if "key" in r}
-    warnings: list[str] = []
-
-    # Devices: run-level first, then per case (a record's device wins where it has one).
-    mismatched_devices = set()
-    for key in base_by.keys() & head_by.keys():
-        db, dh = _device_of(base_by[key], base_info), _device_of(head_by[key], head_info)
-        if db and dh and db != dh:
-            mismatched_devices.add((base_by[key].get("backend"), db, dh))
-    bd, hd = base_info.get("devices") or {}, head_info.get("devices") or {}
-    for backend in bd.keys() & hd.keys():
-        db = bd[backend].get("device") if isinstance(bd[backend], dict) else bd[backend]
-        dh = hd[backend].get("device") if isinstance(hd[backend], dict) else hd[backend]
-        if db and dh and db != dh:
-            mismatched_devices.add((backend, db, dh))
-    verdicts_given = not mismatched_devices
-    for backend, db, dh in sorted(mismatched_devices, key=str):
-        warnings.append(f"different devices for {backend}: base '{db}' vs head '{dh}' — "
-                        f"figures are not comparable; no regression verdicts given")
-    drivers = set()
-    for key in base_by.keys() & head_by.keys():
-        vb, vh = _driver_of(base_by[key], base_info), _driver_of(head_by[key], head_info)
-        if vb and vh and vb != vh:
-            drivers.add((base_by[key].get("backend"), vb, vh))
-    for backend, vb, vh in sorted(drivers, key=str):
-        warnings.append(f"driver changed for {backend}: '{vb}' -> '{vh}' (timings may move "
-                        f"for that reason alone)")
+    common = [(base_by[k], head_by[k]) for k in base_by if k in head_by]
+    warnings, verdicts_given = _environment_warnings(base_info, base_recs, head_info, head_recs,
+                                                     common)
 
     cases: list[CaseDiff] = []
     for key in list(base_by) + [k for k in head_by if k not in base_by]:
         c = CaseDiff(key=key, base=base_by.get(key), head=head_by.get(key))
-        if c.base is None or c.head is None:
-            c.comparable = False
-            c.notes.append("only in head" if c.base is None else "only in base")
+        if not c.in_both:
+            _one_sided_case(c)
+        elif refusal := different_inputs(c.base, c.head):
+            c.comparable, c.refused = False, refusal
         else:
             _diff_case(c, factor, alpha)
-            if not verdicts_given:
-                c.comparable = False
-                if c.verdicts:
-                    c.notes.append("would be: " + ",".join(c.verdicts) + " (different devices)")
-                c.verdicts = []
+        if not verdicts_given and (c.in_both or c.verdicts):
+            c.comparable = False
+            if c.verdicts:
+                c.notes.append("would be: " + ",".join(c.verdicts) + " (different devices)")
+            c.verdicts = []
         cases.append(c)
     if not base_recs:
         warnings.append(f"base run {base_dir} has no records")
     if not head_recs:
         warnings.append(f"head run {head_dir} has no records")
     return CompareResult(str(base_dir), str(head_dir), factor, alpha, base_info, head_info,
-                         cases, warnings, verdicts_given)
+                         cases, warnings, verdicts_given, only_common)
 
 
 # ---------------------------------------------------------------- output
-
-def _fmt_rps(v) -> str:
-    if v is None:
-        return "-"
-    for unit, scale in (("G", 1e9), ("M", 1e6), ("k", 1e3)):
-        if v >= scale:
-            return f"{v / scale:.3g}{unit}"
-    return f"{v:.3g}"
-
 
 def _fmt_ratio(v) -> str:
     return "-" if v is None else f"{v:.3f}"
@@ -341,27 +299,35 @@ def _fmt_p(c: CaseDiff) -> str:
     return s
 
 
+def _verdict(c: CaseDiff, only_common: bool) -> str:
+    if c.regression:
+        return "REGRESSION " + ",".join(c.verdicts)
+    if c.refused:
+        return "REFUSED"
+    if c.head is None:
+        return "not compared" if only_common else "MISSING"
+    if c.base is None:
+        return "new"
+    return "ok" if c.comparable else "no verdict"
+
+
 def table_rows(res: CompareResult) -> list[list[str]]:
     rows = []
     for c in res.cases:
-        if c.regression:
-            verdict = "REGRESSION " + ",".join(c.verdicts)
-        elif not c.comparable and c.base is not None and c.head is not None:
-            verdict = "no verdict"
-        else:
-            verdict = "ok"
+        notes = ([c.refused] if c.refused else []) + c.notes
         rows.append([
             c.key, c.status,
-            _fmt_rps(_rps(c.base)) if c.base else "-",
-            _fmt_rps(_rps(c.head)) if c.head else "-",
+            fmt_si(_rps(c.base)) if c.base else "-",
+            fmt_si(_rps(c.head)) if c.head else "-",
             _fmt_ratio(c.speed_ratio), _fmt_p(c), _fmt_ratio(c.bytes_ratio),
-            _fmt_delta(c.agreement_delta), verdict, "; ".join(c.notes),
+            _fmt_delta(c.agreement_delta), _verdict(c, res.only_common), "; ".join(notes),
         ])
     return rows
 
 
 HEADER = ["case", "status", "base rays/s", "head rays/s", "speed", "p", "bytes", "d agree",
           "verdict", "notes"]
+NUMERIC_COLUMNS = {2, 3, 4, 5, 6, 7}
 
 
 def format_table(res: CompareResult) -> str:
@@ -369,26 +335,12 @@ def format_table(res: CompareResult) -> str:
              f"head: {res.head_dir} ({format_commit(res.head_info.get('commit'), res.head_info.get('dirty'))})",
              f"factor {res.factor}, alpha {res.alpha} (speed = head/base rays/s, bytes = head/base, "
              f"p = one-sided U test head slower, disj = repeat ranges apart)"]
-    for w in res.warnings:
-        lines.append(f"WARNING: {w}")
-    rows = table_rows(res)
-    widths = [max(len(HEADER[i]), *(len(r[i]) for r in rows)) if rows else len(HEADER[i])
-              for i in range(len(HEADER))]
-    widths[0] = min(widths[0], 72)
-
-    def fmt(row):
-        cells = []
-        for i, v in enumerate(row[:-1]):
-            v = v if len(v) <= widths[i] else v[: widths[i] - 1] + "…"
-            cells.append(v.ljust(widths[i]) if i in (0, 1, 8) else v.rjust(widths[i]))
-        return ("  ".join(cells) + ("  " + row[-1] if row[-1] else "")).rstrip()
-
-    lines.append(fmt(HEADER))
-    lines.append("  ".join("-" * w for w in widths[:-1]))
-    lines.extend(fmt(r) for r in rows)
-    n_reg = len(res.regressions)
-    n_cmp = sum(1 for c in res.cases if c.base is not None and c.head is not None)
-    summary = f"{n_cmp} cases compared, {n_reg} regressions"
+    lines += [f"WARNING: {w}" for w in res.warnings]
+    lines += text_table(HEADER, table_rows(res), right=NUMERIC_COLUMNS, max_width={0: 72})
+    n_cmp = sum(1 for c in res.cases if c.in_both and not c.refused)
+    summary = f"{n_cmp} cases compared, {len(res.regressions)} regressions"
+    if res.refused:
+        summary += f", {len(res.refused)} refused"
     if res.only_base:
         summary += f", {len(res.only_base)} only in base"
     if res.only_head:
@@ -396,6 +348,7 @@ def format_table(res: CompareResult) -> str:
     if not res.verdicts_given:
         summary += " (no verdicts: different devices)"
     lines.append(summary)
+    lines += [f"compare failed: {p}" for p in res.problems]
     return "\n".join(lines)
 
 
@@ -407,7 +360,8 @@ def write_compare_html(res: CompareResult, path) -> Path:
            "table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;"
            "padding:3px 6px;text-align:right}td.l,th{text-align:left}th{background:#eee}"
            "tr.reg td{background:#fdd}tr.nv td{background:#f4f4f4;color:#777}"
-           ".warn{background:#fff3cd;border:1px solid #e0c060;padding:.5em 1em}</style>",
+           ".warn{background:#fff3cd;border:1px solid #e0c060;padding:.5em 1em}"
+           ".fail{background:#fbd5d5;border:1px solid #c33;padding:.5em 1em}</style>",
            "</head><body><h1>lsbench compare</h1>"]
     for label, d, info in (("base", res.base_dir, res.base_info), ("head", res.head_dir, res.head_info)):
         out.append(f"<p><b>{label}</b>: {e(str(d))} — commit "
@@ -415,78 +369,16 @@ def write_compare_html(res: CompareResult, path) -> Path:
     out.append(f"<p>factor {res.factor}, alpha {res.alpha}; speed = head/base rays/s; "
                f"bytes = head/base; a slowdown counts only past the factor and when the repeats "
                f"are apart (disjoint ranges or one-sided Mann-Whitney p &lt; alpha).</p>")
-    for w in res.warnings:
-        out.append(f"<p class='warn'>{e(w)}</p>")
+    out += [f"<p class='warn'>{e(w)}</p>" for w in res.warnings]
+    out += [f"<p class='fail'>compare failed: {e(p)}</p>" for p in res.problems]
     out.append(f"<p><b>{len(res.regressions)} regressions</b></p><table><tr>")
     out.extend(f"<th>{e(h)}</th>" for h in HEADER)
     out.append("</tr>")
     for c, row in zip(res.cases, table_rows(res)):
-        cls = "reg" if c.regression else ("nv" if not c.comparable else "")
+        cls = "reg" if c.regression or c.refused else ("nv" if not c.comparable else "")
         out.append(f"<tr class='{cls}'>" + "".join(
-            f"<td class='{'l' if i in (0, 1, 8, 9) else ''}'>{e(v)}</td>" for i, v in enumerate(row))
+            f"<td class='{'' if i in NUMERIC_COLUMNS else 'l'}'>{e(v)}</td>" for i, v in enumerate(row))
             + "</tr>")
     out.append("</table></body></html>")
     path.write_text("\n".join(out))
     return path
-
-
-# ---------------------------------------------------------------- compare two commits
-
-def _git(repo, *args, check=True):
-    return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True,
-                          check=check)
-
-
-def _safe(rev: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", rev).strip("_") or "rev"
-
-
-def compare_commits(rev_a: str, rev_b: str, scenario, factor: float = DEFAULT_FACTOR,
-                    out_dir=None, repo_dir=None, alpha: float = DEFAULT_ALPHA,
-                    extra_args=(), stream=None) -> CompareResult:
-    """Run SCENARIO at two revisions, each in its own temporary worktree with its own code on
-    PYTHONPATH, then compare (base = rev_a, head = rev_b). The same scenario file is used for
-    both (resolved against the current directory when it exists there, else taken as relative
-    to each worktree). Worktrees are removed afterwards, also on failure."""
-    repo_dir = Path(repo_dir or _git(".", "rev-parse", "--show-toplevel").stdout.strip()).resolve()
-    shas = []
-    for rev in (rev_a, rev_b):
-        r = _git(repo_dir, "rev-parse", "--verify", f"{rev}^{{commit}}", check=False)
-        if r.returncode != 0:
-            raise ValueError(f"unknown revision {rev!r}: {r.stderr.strip()}")
-        shas.append(r.stdout.strip())
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    out_dir = Path(out_dir or repo_dir / "reports" / f"compare-{_safe(rev_a)}-{_safe(rev_b)}-{stamp}")
-    out_dir = out_dir.resolve()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    scen = Path(scenario)
-    scen_arg = str(scen.resolve()) if scen.exists() else str(scenario)
-
-    run_dirs = []
-    tmp_root = Path(tempfile.mkdtemp(prefix="lsbench-wt-"))
-    try:
-        for i, (rev, sha) in enumerate(zip((rev_a, rev_b), shas)):
-            label = f"{'ab'[i]}-{_safe(rev)}-{sha[:10]}"
-            wt = tmp_root / label
-            _git(repo_dir, "worktree", "add", "--detach", str(wt), sha)
-            try:
-                run_dir = out_dir / label
-                env = dict(os.environ)
-                env["PYTHONPATH"] = str(wt) + (os.pathsep + env["PYTHONPATH"]
-                                               if env.get("PYTHONPATH") else "")
-                cmd = [sys.executable, "-m", "lsbench", "run", scen_arg, "--out",
-                       str(run_dir), *extra_args]
-                print(f"[{rev} = {sha[:10]}] {' '.join(cmd)}", file=stream or sys.stderr, flush=True)
-                proc = subprocess.run(cmd, cwd=wt, env=env)
-                # A run that exits non-zero (e.g. its accuracy gate failed) still leaves records
-                # to compare; only a run that produced nothing is an error.
-                if not (run_dir / "results.jsonl").exists():
-                    raise RuntimeError(f"run at {rev} ({sha[:10]}) exited {proc.returncode} "
-                                       f"and wrote no {run_dir / 'results.jsonl'}")
-                run_dirs.append(run_dir)
-            finally:
-                _git(repo_dir, "worktree", "remove", "--force", str(wt), check=False)
-    finally:
-        _git(repo_dir, "worktree", "prune", check=False)
-        shutil.rmtree(tmp_root, ignore_errors=True)
-    return compare_runs(run_dirs[0], run_dirs[1], factor=factor, alpha=alpha)
