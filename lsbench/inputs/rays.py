@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lsbench.inputs.checks import BadValue, check_camera, check_image_size
 from lsbench.inputs.scene import Camera, Scene, arrays_hash
 
 
@@ -50,6 +51,11 @@ def primary_rays(scene: Scene, width: int, height: int, camera: Camera | None = 
     if width <= 0 or height <= 0:
         raise RayError(f"image size must be positive, got {width}x{height}")
     cam = camera if camera is not None else default_camera(scene)
+    try:  # the inputs are checked where they are read; this holds for cameras built in code too
+        check_image_size(width, height)
+        check_camera("camera ", cam.eye, cam.target, cam.up, cam.fov_deg)
+    except BadValue as exc:
+        raise RayError(str(exc)) from None
     forward, right, up = _camera_basis(cam)
     half_h = np.tan(np.radians(cam.fov_deg) / 2)
     half_w = half_h * width / height

@@ -25,6 +25,16 @@
                              # optional; default: the scene's own camera or one from its bounds
 
 `$SCENES` is the real-scene folder: env LSBENCH_SCENES, else ../shared/scenes beside the repo.
+
+Every key and value is checked when the file is read, before any case runs (RUN_RULES and the
+[[cases]] rules below, in words from inputs/checks.py): an unknown key (`backend =`, a `[Run]`
+table) is an error with a did-you-mean, as is a value of the wrong TOML type (`repeats = "3"`,
+`width = 32.5`, `heatmaps = 1`) or out of range (`repeats = 0`, `min_agreement = 1.5`,
+`backends = []`, a camera fov of 180). Key by key: width/height/gpu_* integers >= 1 with
+width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; min_agreement in
+[0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
+structures, backends, resolutions, ls_n, ls_min_candidates one value or a non-empty list;
+camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees.
 """
 from __future__ import annotations
 
@@ -33,6 +43,9 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from lsbench.inputs.checks import (FLAG, RESOLUTION, TEXT, BadValue, Rule, check_camera, check_image_size,
+                                   check_keys, check_list, integer, number, one_of, show_typed)
+from lsbench.inputs.rays import RAY_SETS
 from lsbench.paths import scenes_dir, shipped_scenario
 
 
@@ -103,30 +116,98 @@ class Scenario:
     cases: list[Case] = field(default_factory=list)
 
 
-def _as_list(value, what: str) -> list:
-    if value is None:
-        return []
-    return list(value) if isinstance(value, (list, tuple)) else [value]
+# What each [run] setting allows (inputs/checks.py); the flags that set the same values
+# (--repeats, --rel-tol, --memory-budget, ...) use these rules too. Every RunSettings field has
+# one (tests/test_input_checks.py holds them together).
+RUN_RULES: dict[str, Rule] = {
+    "width": integer(1), "height": integer(1), "gpu_width": integer(1), "gpu_height": integer(1),
+    "rays": Rule(f"a ray set ({', '.join(sorted(RAY_SETS))}) or a path to a .npz file",
+                 lambda v: isinstance(v, str) and (v in RAY_SETS or v.lower().endswith(".npz")),
+                 names=tuple(sorted(RAY_SETS)), noun="ray set"),
+    "repeats": integer(1), "warmup": integer(0),
+    "rel_tol": number(0), "min_agreement": number(0, 1),
+    "timeout_seconds": number(0, low_open=True), "memory_budget_mb": number(0, low_open=True),
+    "heatmaps": FLAG, "embree_timing": FLAG,
+}
+
+# What each key of a [[cases]] block allows: one value or a non-empty list of them (camera
+# aside). Structures and backends come from their catalogues, so these are built on use.
+REQUIRED_CASE_KEYS = ("scenes", "structures", "resolutions")
+CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "camera")
+LS_N = integer(0)  # 0 = the structure's own default (a Line Space structure builds N = 1)
+LS_MIN_CANDIDATES = integer(0)
+CAMERA_KEYS = ("eye", "target", "up", "fov")
+TOP_KEYS = ("name", "run", "cases")
 
 
 def _camera(table, where: str):
-    if table is None:
-        return None
-    try:
-        eye = tuple(float(v) for v in table["eye"])
-        target = tuple(float(v) for v in table["target"])
-        up = tuple(float(v) for v in table.get("up", (0.0, 1.0, 0.0)))
-        fov = float(table.get("fov", 60.0))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ScenarioError(f"{where}: camera needs eye = [x,y,z], target = [x,y,z] (optional up, fov): {exc}") from None
-    if len(eye) != 3 or len(target) != 3 or len(up) != 3:
-        raise ScenarioError(f"{where}: camera eye/target/up need 3 numbers each")
-    return (eye, target, up, fov)
+    if not isinstance(table, dict):
+        raise BadValue(f"{where}camera = {show_typed(table)} is not a table "
+                       "{ eye = [x, y, z], target = [x, y, z], up = [x, y, z], fov = degrees }")
+    check_keys(f"{where}camera: ", table, CAMERA_KEYS)
+    for key in ("eye", "target"):
+        if key not in table:
+            raise BadValue(f"{where}camera has no {key}; it needs eye = [x, y, z] and "
+                           "target = [x, y, z] (up and fov are optional)")
+    eye, target = table["eye"], table["target"]
+    up, fov = table.get("up", [0.0, 1.0, 0.0]), table.get("fov", 60.0)
+    check_camera(f"{where}camera.", eye, target, up, fov)
+    return (tuple(map(float, eye)), tuple(map(float, target)), tuple(map(float, up)), float(fov))
+
+
+def _settings(run, where: str) -> RunSettings:
+    if not isinstance(run, dict):
+        raise BadValue(f"run = {show_typed(run)} is not a table: write the settings under [run]")
+    check_keys(where, run, [f.name for f in dataclasses.fields(RunSettings)])
+    for key, value in run.items():
+        if key in RUN_RULES:
+            RUN_RULES[key].check(f"{where}{key}", value)
+    settings = RunSettings(**run)
+    if (settings.gpu_width is None) != (settings.gpu_height is None):
+        raise BadValue(f"{where}gpu_width and gpu_height go together: give both or neither")
+    for w, h in (("width", "height"), ("gpu_width", "gpu_height")):
+        if getattr(settings, w) is not None:
+            try:
+                check_image_size(getattr(settings, w), getattr(settings, h))
+            except BadValue as exc:
+                raise BadValue(f"{where}{w} x {h} = {exc}") from None
+    return settings
+
+
+def _block_cases(block, where: str, settings: RunSettings, width: int, height: int) -> list[Case]:
+    """The cases of one [[cases]] block: the cross product of its lists."""
+    from lsbench.backends import BACKENDS, structure_info, structure_names
+
+    if not isinstance(block, dict):
+        raise BadValue(f"{where}{show_typed(block)} is not a table: write each block under [[cases]]")
+    check_keys(where, block, CASE_KEYS)
+    missing = [k for k in REQUIRED_CASE_KEYS if k not in block]
+    if missing:
+        raise BadValue(f"{where}missing {', '.join(missing)} (needed: {', '.join(REQUIRED_CASE_KEYS)})")
+    scenes = [expand_scene(s) for s in check_list(f"{where}scenes", block["scenes"], TEXT)]
+    names = check_list(f"{where}structures", block["structures"], one_of(structure_names(), "structure"))
+    backs = check_list(f"{where}backends", block.get("backends", list(BACKENDS)), one_of(BACKENDS, "backend"))
+    resolutions = check_list(f"{where}resolutions", block["resolutions"], RESOLUTION)
+    ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N)  # N for Line Space structures
+    ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES)
+    camera = _camera(block["camera"], where) if "camera" in block else None
+    cases = []
+    for scene in scenes:
+        for s in names:
+            for b in backs:
+                for r in resolutions:
+                    # A Line Space N only means something for Line Space structures.
+                    line_space = structure_info(s).line_space
+                    for n in (ns if line_space else [0]):
+                        for k in (ks if line_space else [0]):
+                            cases.append(Case(scene, s, b, str(r), n, k, settings.rays, width, height,
+                                              camera))
+    return cases
 
 
 def load_scenario(path: str, gpu: bool = False) -> Scenario:
-    from lsbench.backends import BACKENDS, structure_info, structure_names
-
+    """Read and check a scenario: an unknown key, a value of the wrong type or out of range is a
+    ScenarioError naming the file, the key, the value and what is allowed, before any case runs."""
     p = Path(path)
     if not p.is_file() and shipped_scenario(str(path)) is not None:
         p = shipped_scenario(str(path))  # a shipped scenario by name: `lsbench gate ci`
@@ -136,56 +217,27 @@ def load_scenario(path: str, gpu: bool = False) -> Scenario:
         data = tomllib.loads(p.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
-    run = dict(data.get("run", {}))
-    known = {f.name for f in dataclasses.fields(RunSettings)}
-    unknown = set(run) - known
-    if unknown:
-        raise ScenarioError(f"{path}: unknown [run] settings {sorted(unknown)}; known: {sorted(known)}")
     try:
-        settings = RunSettings(**run)
-    except TypeError as exc:
+        check_keys("top level: ", data, TOP_KEYS)
+        name = TEXT.check("name", data.get("name", p.stem))
+        settings = _settings(data.get("run", {}), "[run] ")
+        width, height = settings.width, settings.height
+        if gpu and settings.gpu_width:
+            width, height = settings.gpu_width, settings.gpu_height
+        blocks = data.get("cases")
+        if blocks is None:
+            raise BadValue("no [[cases]] blocks")
+        if not isinstance(blocks, list) or not blocks:
+            raise BadValue(f"cases = {show_typed(blocks)} is not a non-empty array of tables: "
+                           "write each block under [[cases]]")
+        cases: list[Case] = []
+        for i, block in enumerate(blocks):
+            cases += _block_cases(block, f"[[cases]] #{i + 1}: ", settings, width, height)
+    except BadValue as exc:
         raise ScenarioError(f"{path}: {exc}") from None
-    width, height = settings.width, settings.height
-    if gpu and settings.gpu_width and settings.gpu_height:
-        width, height = settings.gpu_width, settings.gpu_height
-    blocks = data.get("cases")
-    if not blocks:
-        raise ScenarioError(f"{path}: no [[cases]] blocks")
-    cases: list[Case] = []
-    structures = set(structure_names())
-    for i, block in enumerate(blocks):
-        where = f"{path}: [[cases]] #{i + 1}"
-        scenes = [expand_scene(str(s)) for s in _as_list(block.get("scenes"), "scenes")]
-        names = _as_list(block.get("structures"), "structures")
-        backs = _as_list(block.get("backends", list(BACKENDS)), "backends")
-        resolutions = _as_list(block.get("resolutions"), "resolutions")
-        try:
-            ns = [int(n) for n in _as_list(block.get("ls_n", [2]), "ls_n")]  # N for Line Space structures
-            ks = [int(k) for k in _as_list(block.get("ls_min_candidates", 0), "ls_min_candidates")]
-        except (TypeError, ValueError) as exc:
-            raise ScenarioError(f"{where}: ls_n and ls_min_candidates take integers ({exc})") from None
-        camera = _camera(block.get("camera"), where)
-        if not scenes or not names or not resolutions:
-            raise ScenarioError(f"{where}: needs scenes, structures and resolutions")
-        for s in names:
-            if s not in structures:
-                raise ScenarioError(f"{where}: unknown structure {s!r}; known: {sorted(structures)}")
-        for b in backs:
-            if b not in BACKENDS:
-                raise ScenarioError(f"{where}: unknown backend {b!r}; known: {list(BACKENDS)}")
-        for scene in scenes:
-            for s in names:
-                for b in backs:
-                    for r in resolutions:
-                        # A Line Space N only means something for Line Space structures.
-                        line_space = structure_info(s).line_space
-                        for n in (ns if line_space else [0]):
-                            for k in (ks if line_space else [0]):
-                                cases.append(Case(scene, s, b, str(r), n, k, settings.rays, width, height,
-                                                  camera))
     seen, unique = set(), []
     for c in cases:
         if c.key not in seen:
             seen.add(c.key)
             unique.append(c)
-    return Scenario(str(data.get("name", p.stem)), str(p), settings, unique)
+    return Scenario(name, str(p), settings, unique)
