@@ -7,8 +7,9 @@ import sys
 
 def build_parser() -> argparse.ArgumentParser:
     from lsbench.commands import COMMANDS
+    from lsbench.commands.common import Parser  # one-line errors, exit 2
 
-    p = argparse.ArgumentParser(prog="lsbench", description=__doc__)
+    p = Parser(prog="lsbench", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.setup_arguments(sub)

@@ -1,24 +1,60 @@
-"""Arguments and parsers that several commands share, defined once (asv's common_args)."""
+"""Arguments and parsers that several commands share, defined once (asv's common_args).
+
+Every flag's value is checked by its `type=` while parsing (the rules of inputs/checks.py, the
+same ones a scenario's [run] keys use), so a bad value is one line naming the flag, the value and
+what is allowed, exit 2, before anything runs."""
 from __future__ import annotations
 
 import argparse
 
+from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
+                                   number, writable_folder)
+from lsbench.inputs.scenario import LS_MIN_CANDIDATES, LS_N, RUN_RULES
 
-class UsageError(ValueError):
+
+class UsageError(BadValue):
     """A bad command-line value: `lsbench` prints the one-line message and exits 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse whose errors are one line and exit 2, like every other bad input (argparse's own
+    print the usage first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"lsbench: error: {message} (see `{self.prog} --help`)\n")
 
 
 def say(*a, **k) -> None:
     print(*a, **k, flush=True)
 
 
+# compare / compare-commits: a slowdown or growth ratio (1.1 = 10 %; below 1 every case would
+# regress) and the significance level of a one-sided test.
+FACTOR = number(1)
+ALPHA = number(0, 1, low_open=True, high_open=True)
+
+
+def checked_text(parse):
+    """argparse `type=` for a flag whose command parses the text itself (--size, --camera):
+    `parse` checks it now, the text is kept as given."""
+    def check(text: str) -> str:
+        try:
+            parse(text)
+        except BadValue as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        return text
+    return check
+
+
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     """SCENARIO and the run-folder flags of `run` and `gate`."""
     p.add_argument("scenario", help="scenario TOML file, e.g. scenarios/default.toml")
-    p.add_argument("--out", help="run folder (default reports/<name>-<date>-<commit>); an existing one resumes")
+    p.add_argument("--out", type=writable_folder,
+                   help="run folder (default reports/<name>-<date>-<commit>); an existing one resumes")
     p.add_argument("--fresh", action="store_true", help="redo cases already in --out")
     p.add_argument("--heatmaps", action="store_true", help="write heatmaps for every case")
-    p.add_argument("--memory-budget", type=float, metavar="MiB", help="host memory limit per case worker")
+    p.add_argument("--memory-budget", type=RUN_RULES["memory_budget_mb"].flag, metavar="MiB",
+                   help="host memory limit per case worker")
 
 
 def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> None:
@@ -28,14 +64,15 @@ def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> Non
     p.add_argument("--scene", required=True, help="built-in name or mesh file")
     p.add_argument("--structure", required=True, choices=backends.structure_names())
     p.add_argument("--backend", required=True, choices=list(backends.BACKENDS))
-    p.add_argument("--resolution", default="64", help="64 (cubic) or RxRyRz")
-    p.add_argument("--ls-n", type=int, default=0, help="Line Space patches per face edge")
-    p.add_argument("--ls-min-candidates", type=int, default=0,
+    p.add_argument("--resolution", type=RESOLUTION.flag, default="64", help="64 (cubic) or RxRyRz")
+    p.add_argument("--ls-n", type=LS_N.flag, default=0, help="Line Space patches per face edge")
+    p.add_argument("--ls-min-candidates", type=LS_MIN_CANDIDATES.flag, default=0,
                    help="only cells with more candidates get a Line Space")
-    p.add_argument("--size", default=size, help="image size WxH for camera rays")
+    p.add_argument("--size", type=checked_text(parse_size), default=size,
+                   help=f"image size WxH for camera rays (W*H <= {MAX_IMAGE_RAYS})")
     p.add_argument("--rays", default="primary", help="ray set name or .npz file with origins/directions")
-    p.add_argument("--repeats", type=int, default=5, help="timed launches")
-    p.add_argument("--warmup", type=int, default=1, help="untimed launches before them")
+    p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=5, help="timed launches")
+    p.add_argument("--warmup", type=RUN_RULES["warmup"].flag, default=1, help="untimed launches before them")
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -43,9 +80,13 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
         if w < 1 or h < 1:
             raise ValueError
-        return w, h
     except ValueError:
-        raise UsageError(f"--size must look like 512x512, got {text!r}") from None
+        raise UsageError(f"{text} is not WxH with W, H >= 1, e.g. 512x512") from None
+    try:
+        check_image_size(w, h)
+    except BadValue as exc:
+        raise UsageError(str(exc)) from None
+    return w, h
 
 
 def parse_camera(text: str):
@@ -55,11 +96,17 @@ def parse_camera(text: str):
         eye = tuple(float(v) for v in parts[0].split(","))
         target = tuple(float(v) for v in parts[1].split(","))
         fov = float(parts[2]) if len(parts) > 2 else 60.0
-        if len(eye) != 3 or len(target) != 3:
+        if len(eye) != 3 or len(target) != 3 or len(parts) > 3:
             raise ValueError
     except (ValueError, IndexError):
-        raise UsageError(f"--camera must look like 'ex,ey,ez:tx,ty,tz[:fov]', got {text!r}") from None
-    return (eye, target, (0.0, 1.0, 0.0), fov)
+        raise UsageError(f"{text} is not 'ex,ey,ez:tx,ty,tz[:fov]' (eye and target, "
+                         f"fov {FOV.allowed})") from None
+    up = (0.0, 1.0, 0.0)
+    try:
+        check_camera("", eye, target, up, fov)
+    except BadValue as exc:
+        raise UsageError(f"{text}: {exc}") from None
+    return (eye, target, up, fov)
 
 
 def case_from_args(args, camera=None):

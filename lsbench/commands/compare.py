@@ -12,11 +12,12 @@ HELP = "compare two runs; exit 1 on a regression, a refused or a missing case"
 
 def add_verdict_arguments(p) -> None:
     """--factor, --alpha and --only-common, shared with compare-commits."""
+    from lsbench.commands.common import ALPHA, FACTOR
     from lsbench.compare.verdicts import DEFAULT_ALPHA, DEFAULT_FACTOR
 
-    p.add_argument("--factor", type=float, default=DEFAULT_FACTOR,
+    p.add_argument("--factor", type=FACTOR.flag, default=DEFAULT_FACTOR,
                    help="slowdown / memory growth ratio that counts (default %(default)s)")
-    p.add_argument("--alpha", type=float, default=DEFAULT_ALPHA,
+    p.add_argument("--alpha", type=ALPHA.flag, default=DEFAULT_ALPHA,
                    help="significance level of the one-sided U test (default %(default)s)")
     p.add_argument("--only-common", action="store_true",
                    help="compare the cases both runs have; head lacking base's cases is no failure")

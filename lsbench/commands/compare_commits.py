@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from lsbench.commands.compare import add_verdict_arguments
+from lsbench.inputs.checks import writable_folder
 
 NAME = "compare-commits"
 HELP = "run a scenario at two git revisions and compare"
@@ -20,7 +21,7 @@ def setup_arguments(sub) -> None:
     q.add_argument("rev_b", metavar="REV_B")
     q.add_argument("scenario", metavar="SCENARIO")
     add_verdict_arguments(q)
-    q.add_argument("--out", default=None, metavar="DIR",
+    q.add_argument("--out", type=writable_folder, default=None, metavar="DIR",
                    help="where both runs go (default reports/compare-A-B-TIME)")
     q.set_defaults(func=run)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import sys
 
+from lsbench.inputs.checks import writable_folder
+
 NAME = "report"
 HELP = "write the HTML report of a run"
 
@@ -11,7 +13,7 @@ HELP = "write the HTML report of a run"
 def setup_arguments(sub) -> None:
     p = sub.add_parser(NAME, help=HELP, description="Write index.html and charts for RUN_DIR.")
     p.add_argument("run_dir", metavar="RUN_DIR")
-    p.add_argument("--out", default=None, metavar="DIR",
+    p.add_argument("--out", type=writable_folder, default=None, metavar="DIR",
                    help="report folder (default: RUN_DIR itself; images are copied when elsewhere)")
     p.set_defaults(func=run)
 

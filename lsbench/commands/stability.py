@@ -7,7 +7,9 @@ import json
 import sys
 from pathlib import Path
 
-from lsbench.commands.common import UsageError, add_case_arguments, case_from_args
+from lsbench.commands.common import add_case_arguments, case_from_args
+from lsbench.inputs.checks import integer
+from lsbench.inputs.scenario import RUN_RULES
 
 NAME = "stability"
 HELP = "repeat one case in this process and in separate processes; print and write the spread of its timings"
@@ -16,9 +18,10 @@ HELP = "repeat one case in this process and in separate processes; print and wri
 def setup_arguments(sub) -> None:
     s = sub.add_parser(NAME, help=HELP)
     add_case_arguments(s, size="128x128")
-    s.add_argument("--processes", type=int, default=3,
+    s.add_argument("--processes", type=integer(1).flag, default=3,
                    help="runs in this process and, as many again, each in its own process")
-    s.add_argument("--timeout", type=float, default=600.0, help="seconds per separate-process run")
+    s.add_argument("--timeout", type=RUN_RULES["timeout_seconds"].flag, default=600.0,
+                   help="seconds per separate-process run")
     s.add_argument("--out", metavar="FILE.json", help="default reports/stability-<case>-<date>.json")
     s.set_defaults(func=run)
 
@@ -31,8 +34,6 @@ def run(args) -> int:
     from lsbench.profile.stability import stability_text, timing_stability
     from lsbench.running.environment import record_env
 
-    if args.processes < 1:
-        raise UsageError("--processes must be at least 1")
     case = case_from_args(args)
     load_scene(args.scene)  # bad input fails here, before any worker starts
     settings = RunSettings(width=case.width, height=case.height, rays=args.rays, repeats=args.repeats,

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import json
 
-from lsbench.commands.common import add_case_arguments, case_from_args, parse_camera
+from lsbench.commands.common import add_case_arguments, case_from_args, checked_text, parse_camera
+from lsbench.inputs.checks import writable_folder
+from lsbench.inputs.scenario import RUN_RULES
 
 NAME = "trace"
 HELP = "build and trace one case, print its record"
@@ -12,11 +14,14 @@ HELP = "build and trace one case, print its record"
 def setup_arguments(sub) -> None:
     t = sub.add_parser(NAME, help=HELP)
     add_case_arguments(t)
-    t.add_argument("--camera", help="eye and target 'ex,ey,ez:tx,ty,tz[:fov]' (default: the scene's)")
-    t.add_argument("--rel-tol", type=float, default=1e-4, help="relative distance tolerance")
+    t.add_argument("--camera", type=checked_text(parse_camera),
+                   help="eye and target 'ex,ey,ez:tx,ty,tz[:fov]' (default: the scene's)")
+    t.add_argument("--rel-tol", type=RUN_RULES["rel_tol"].flag, default=1e-4,
+                   help="relative distance tolerance")
     t.add_argument("--json", action="store_true", help="print the record as one JSON object")
     t.add_argument("--dump-hits", metavar="FILE.npz", help="write rays and hits (and Embree's) to FILE.npz")
-    t.add_argument("--heatmaps", metavar="DIR", help="write work/clock heatmaps (EXR + PNG) to DIR")
+    t.add_argument("--heatmaps", type=writable_folder, metavar="DIR",
+                   help="write work/clock heatmaps (EXR + PNG) to DIR")
     t.set_defaults(func=run)
 
 
