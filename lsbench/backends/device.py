@@ -23,6 +23,22 @@ class DeviceError(RuntimeError):
     """The driver reported an error (compile failure, GL error after a dispatch, ...)."""
 
 
+def start_failure_hint(install_hint: str) -> str:
+    """What to suggest when a device does not start. Under an address-space limit (RLIMIT_AS:
+    `lsbench run --memory-budget` sets one in each case worker, `ulimit -v` in a shell) the
+    installed drivers fail to start for want of memory (PoCL: no platform, DEVICE_NOT_AVAILABLE or
+    'cannot build kernels' at 200-600 MiB here; EGL: eglInitialize failed), so the limit is named
+    as the likely cause instead of `install_hint`, which would send the user to install drivers
+    that are there."""
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return install_hint
+    return (f"an address-space limit of {soft / 2**20:.0f} MiB is in force (RLIMIT_AS, which "
+            "--memory-budget sets): the likely cause; give the case more memory")
+
+
 @dataclass
 class DeviceBuffer:
     name: str

@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count
+from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
+                     start_failure_hint)
 from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
@@ -58,8 +59,9 @@ class GLSLDevice(Device):
             self.ctx = moderngl.create_context(standalone=True, backend="egl", require=450)
         except Exception as exc:  # no EGL / Mesa: name what is missing
             raise DeviceError(
-                f"cannot create an OpenGL 4.5 context through EGL ({exc}); install the EGL and "
-                "Mesa drivers, e.g. `apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri`") from exc
+                f"cannot create an OpenGL 4.5 context through EGL ({exc}); " + start_failure_hint(
+                    "install the EGL and Mesa drivers, e.g. `apt-get install libegl1 libegl-mesa0 "
+                    "libgl1-mesa-dri`")) from exc
         self._programs: dict = {}
         self._scan_programs: dict = {}
         # Framebuffers by size, kept: releasing a bound framebuffer left the next draw failing

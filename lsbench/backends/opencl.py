@@ -6,7 +6,8 @@ import os
 
 import numpy as np
 
-from .device import Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count
+from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
+                     start_failure_hint)
 from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
 
 CL_TYPES = {"float": "float", "uint": "uint", "int": "int", "float4": "float4", "uint4": "uint4",
@@ -75,12 +76,16 @@ class OpenCLDevice(Device):
         try:
             platforms = cl.get_platforms()
         except cl.Error as exc:
-            raise DeviceError(
-                f"no OpenCL platform ({exc}); install an ICD, e.g. `pip install "
-                "pocl-binary-distribution` for the CPU") from exc
-        devices = [d for p in platforms for d in p.get_devices()]
+            raise DeviceError(f"no OpenCL platform ({exc}); " + start_failure_hint(
+                "install an ICD, e.g. `pip install pocl-binary-distribution` for the CPU")) from exc
+        try:
+            devices = [d for p in platforms for d in p.get_devices()]
+        except cl.Error as exc:  # DEVICE_NOT_AVAILABLE, OUT_OF_HOST_MEMORY under a low RLIMIT_AS
+            raise DeviceError(f"cannot list OpenCL devices ({exc}); " + start_failure_hint(
+                "check the ICD's driver")) from exc
         if not devices:
-            raise DeviceError("no OpenCL device found; `pip install pocl-binary-distribution` gives a CPU one")
+            raise DeviceError("no OpenCL device found; " + start_failure_hint(
+                "`pip install pocl-binary-distribution` gives a CPU one"))
         wanted = os.environ.get("LSBENCH_OPENCL_DEVICE")
         if wanted:
             devices = [d for d in devices if wanted.lower() in d.name.lower()]
@@ -101,7 +106,8 @@ class OpenCLDevice(Device):
                 self.skipped_devices.append(f"{d.name.strip()} ({d.platform.version.strip()}): "
                                             "cannot build kernels")
         raise DeviceError("no OpenCL device can build kernels: " + "; ".join(self.skipped_devices)
-                          + "; on Debian `apt-get install pocl-opencl-icd` gives a working CPU device")
+                          + "; " + start_failure_hint("on Debian `apt-get install pocl-opencl-icd` "
+                                                      "gives a working CPU device"))
 
     # --- information -----------------------------------------------------------------------
     def info(self) -> dict:
