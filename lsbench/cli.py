@@ -29,8 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     except (SceneError, RayError, ScenarioError, UsageError) as exc:
         print(f"lsbench: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("lsbench: interrupted; finished cases are kept in results.jsonl", file=sys.stderr)
+    except KeyboardInterrupt as exc:  # runner.Interrupted says where the records are
+        print(f"lsbench: interrupted; {exc or 'finished cases are kept in results.jsonl'}", file=sys.stderr)
         return 130
 
 

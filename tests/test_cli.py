@@ -103,7 +103,7 @@ def test_run_writes_results_and_resumes(tmp_path):
     assert all(r["status"] == "ok" for r in records)
     assert (out / "run.json").is_file()
     again = lsbench("run", scen, "--out", out, check=0)
-    assert again.stdout.count("skipped") == 2
+    assert again.stdout.count("reused") == 2
     assert len((out / "results.jsonl").read_text().splitlines()) == 2
     lsbench("run", scen, "--out", out, "--fresh", check=0)
     assert len((out / "results.jsonl").read_text().splitlines()) == 2

@@ -51,7 +51,10 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scenario", help="scenario TOML file, e.g. scenarios/default.toml")
     p.add_argument("--out", type=writable_folder,
                    help="run folder (default reports/<name>-<date>-<commit>); an existing one resumes")
-    p.add_argument("--fresh", action="store_true", help="redo cases already in --out")
+    p.add_argument("--fresh", action="store_true",
+                   help="redo every case; the new records replace those in --out when the run finishes")
+    p.add_argument("--keep-failed", action="store_true",
+                   help="reuse failed records of --out instead of retrying those cases")
     p.add_argument("--heatmaps", action="store_true", help="write heatmaps for every case")
     p.add_argument("--memory-budget", type=RUN_RULES["memory_budget_mb"].flag, metavar="MiB",
                    help="host memory limit per case worker")

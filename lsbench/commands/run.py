@@ -1,4 +1,6 @@
-"""`lsbench run SCENARIO`: every case of a scenario, each in its own worker; resumes --out."""
+"""`lsbench run SCENARIO`: every case of a scenario, each in its own worker; resumes --out.
+Exit status: 0 when every case is ok, 1 when one failed (0 with --allow-failed), 2 for bad input
+or a run folder that cannot be written or is in use."""
 from __future__ import annotations
 
 import dataclasses
@@ -6,7 +8,7 @@ import datetime as _dt
 import sys
 from pathlib import Path
 
-from lsbench.commands.common import add_scenario_arguments, say
+from lsbench.commands.common import UsageError, add_scenario_arguments, say
 
 NAME = "run"
 HELP = "run every case of a scenario"
@@ -15,6 +17,8 @@ HELP = "run every case of a scenario"
 def setup_arguments(sub) -> None:
     p = sub.add_parser(NAME, help=HELP)
     add_scenario_arguments(p)
+    p.add_argument("--allow-failed", action="store_true",
+                   help="exit 0 even when cases fail (sweeps that expect named driver limits)")
     p.set_defaults(func=run)
 
 
@@ -27,59 +31,56 @@ def default_out_dir(name: str) -> Path:
     return reports_dir() / f"{name}-{stamp}-{commit[:7]}{'-dirty' if dirty else ''}"
 
 
-def write_run_json(out: Path, scenario, argv) -> None:
-    from lsbench import backends
+def write_run_json(out: Path, scenario, devices: dict, argv) -> None:
     from lsbench.results.store import write_run_info
     from lsbench.running.environment import code_state, environment_info
 
     commit, dirty = code_state()
     info = environment_info()
-    devices = {}
-    for name in sorted({c.backend for c in scenario.cases}):
-        try:
-            d = backends.get_device(name).info()
-            devices[name] = {"device": d["device"], "driver": d["driver"]}
-        except Exception as exc:  # the cases will fail with the reason; run.json says it too
-            devices[name] = {"device": None, "error": str(exc).splitlines()[0]}
     info.update({"commit": commit, "dirty": dirty, "devices": devices, "scenario": scenario.path,
                  "settings": dataclasses.asdict(scenario.settings),
                  "scenario_name": scenario.name, "command": " ".join(argv)})
     write_run_info(out, info)
 
 
-def check_inputs(scenario) -> None:
-    """Load every scene file and .npz ray file of the scenario once, before any case runs: a
-    missing or corrupt file is a one-line error (exit 2), not a run of failed cases."""
-    from lsbench.inputs.rays import load_rays_file
-    from lsbench.inputs.scenes import builtin_names, load_scene
-
-    for spec in dict.fromkeys(c.scene for c in scenario.cases):
-        if spec not in builtin_names():
-            load_scene(spec)
-    for spec in dict.fromkeys(c.rays for c in scenario.cases):
-        if spec.lower().endswith(".npz"):
-            load_rays_file(spec)
+def prepare_out_dir(path: Path) -> Path:
+    """The run folder, created if need be; a one-line error when it cannot be one."""
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"--out {path}: not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out {path}: cannot create it ({exc.strerror or exc})") from None
+    return path
 
 
 def run_scenario_file(args):
-    """Load, check and run the scenario the arguments name: (scenario, records). `gate` runs
-    the same and then judges the records."""
+    """Load and run the scenario the arguments name, holding the lock on its run folder:
+    (scenario, records). `gate` runs the same and then judges the records."""
     from lsbench.inputs.scenario import load_scenario
-    from lsbench.running.environment import record_env, uses_gpu
-    from lsbench.running.runner import run_scenario, summary_table
+    from lsbench.results.store import ResultsError, RunLock, check_writable
+    from lsbench.running.environment import device_info, record_env, uses_gpu
+    from lsbench.running.runner import plan_cases, run_scenario, summary_table
 
     scenario = load_scenario(args.scenario)
     if scenario.settings.gpu_width:
         scenario = load_scenario(args.scenario, gpu=uses_gpu({c.backend for c in scenario.cases}))
     if args.memory_budget:
         scenario.settings = dataclasses.replace(scenario.settings, memory_budget_mb=args.memory_budget)
-    check_inputs(scenario)
-    out = Path(args.out) if args.out else default_out_dir(scenario.name)
-    out.mkdir(parents=True, exist_ok=True)
-    write_run_json(out, scenario, sys.argv)
-    say(f"lsbench run {scenario.name}: {len(scenario.cases)} cases -> {out}")
-    records = run_scenario(scenario, out, record_env(), fresh=args.fresh,
-                           heatmaps=True if args.heatmaps else None, log=say)
+    out = prepare_out_dir(Path(args.out) if args.out else default_out_dir(scenario.name))
+    try:
+        with RunLock(out, " ".join(["lsbench", *sys.argv[1:]])):
+            check_writable(out, args.fresh)
+            devices = device_info(c.backend for c in scenario.cases)
+            env = record_env()
+            plans = plan_cases(scenario, env, devices)  # bad scene or ray files: exit 2 here
+            write_run_json(out, scenario, devices, sys.argv)
+            say(f"lsbench run {scenario.name}: {len(scenario.cases)} cases -> {out}")
+            records = run_scenario(scenario, plans, out, env, fresh=args.fresh,
+                                   heatmaps=True if args.heatmaps else None, keep_failed=args.keep_failed,
+                                   log=say)
+    except ResultsError as exc:
+        raise UsageError(str(exc)) from None
     say()
     say(summary_table(records))
     say(f"\nresults: {out / 'results.jsonl'}")
@@ -87,5 +88,9 @@ def run_scenario_file(args):
 
 
 def run(args) -> int:
-    run_scenario_file(args)
+    _, records = run_scenario_file(args)
+    failed = [r for r in records if r.get("status") != "ok"]
+    if failed and not args.allow_failed:
+        say(f"\n{len(failed)} of {len(records)} cases failed (exit 1; --allow-failed exits 0)")
+        return 1
     return 0

@@ -39,6 +39,7 @@ camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees.
 from __future__ import annotations
 
 import dataclasses
+import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,6 +76,19 @@ class RunSettings:
     embree_timing: bool = True  # also time Embree (CPU, all cores) on the same rays
 
 
+def input_label(spec: str) -> str:
+    """How a scene or ray file is named in a case key: a name without a folder or suffix (a
+    built-in scene, a ray set) as it is; a file by its path: "$SCENES/..." under the real-scene
+    folder, relative to the working folder inside it, else absolute."""
+    if "/" not in spec and "\\" not in spec and not Path(spec).suffix:
+        return spec
+    path = Path(os.path.abspath(spec))
+    for base, prefix in ((Path(os.path.abspath(scenes_dir())), "$SCENES/"), (Path(os.path.abspath(".")), "")):
+        if path.is_relative_to(base):
+            return prefix + path.relative_to(base).as_posix()
+    return path.as_posix()
+
+
 @dataclass(frozen=True)
 class Case:
     scene: str  # built-in name or path
@@ -88,16 +102,36 @@ class Case:
     height: int = 64
     camera: tuple | None = None  # ((eye), (target), (up), fov_deg) or None for the scene default
 
+    def build_params(self):
+        """The BuildParams this case builds with, as the recipes take them: a Line Space
+        structure always has one (N = 0 builds N = 1, backends/structures/grid_ls.py and
+        octree_ls.py), the others ignore N and the candidate threshold."""
+        from lsbench.backends import BuildParams, structure_info
+        from lsbench.backends.structures.base import parse_resolution
+
+        line_space = structure_info(self.structure).line_space
+        return BuildParams(resolution=parse_resolution(self.resolution),
+                           ls_n=(self.ls_n or 1) if line_space else 0,
+                           ls_min_candidates=self.ls_min_candidates if line_space else 0)
+
     @property
     def key(self) -> str:
-        """Stable identity of a case across runs and commits (what resume and compare match on)."""
-        scene = Path(self.scene).name if ("/" in self.scene or "\\" in self.scene) else self.scene
-        rays = f"{self.rays}@{self.width}x{self.height}"
+        """Identity of a case across runs and commits (what resume and compare match on): the
+        scene and ray file by path (never only the file name), the ray set, image size and
+        camera, structure, backend and every build parameter as built (resolution "64" and
+        "64x64x64" are one case). The files' contents are the records' scene_hash / rays_hash."""
+        from lsbench.backends.structures.base import format_resolution
+
+        try:
+            params = self.build_params()
+            res, n, k = format_resolution(params.resolution), params.ls_n, params.ls_min_candidates
+        except ValueError:  # a resolution or structure that does not parse: the case fails when run
+            res, n, k = self.resolution, self.ls_n, self.ls_min_candidates
+        rays = f"{input_label(self.rays)}@{self.width}x{self.height}"
         if self.camera is not None:
             eye, target, up, fov = self.camera
             rays += "@cam(" + ",".join(f"{v:g}" for v in (*eye, *target, *up, fov)) + ")"
-        return (f"{scene}|{rays}|{self.structure}|{self.backend}|"
-                f"r{self.resolution}|n{self.ls_n}|k{self.ls_min_candidates}")
+        return f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}"
 
     def camera_object(self):
         from lsbench.inputs.scene import Camera

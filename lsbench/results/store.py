@@ -1,26 +1,39 @@
-"""Results store: one directory per run.
+"""Results store: one directory per run. This module alone reads and writes it.
 
-Layout (written by lsbench.running.runner, read by report and compare)::
+Layout::
 
-    RUN_DIR/run.json        environment of the whole run (commit, dirty, date, host, python,
-                            package versions, devices, scenario, command line)
-    RUN_DIR/results.jsonl   one JSON object per case, appended as each case finishes
-    RUN_DIR/<images>        heatmaps etc., referenced from records by relative path
+    RUN_DIR/run.json             environment of the whole run (commit, dirty, date, host, python,
+                                 package versions, devices, scenario, settings, command line)
+    RUN_DIR/results.jsonl        one record per case (lsbench/results/record.py, docs/record.md),
+                                 appended as each case finishes
+    RUN_DIR/results.jsonl.fresh  the records of a `--fresh` run until it finishes (RunResults)
+    RUN_DIR/run.lock             flock'ed while a run writes the folder; says who holds it
+    RUN_DIR/<images>             heatmaps etc., referenced from records by relative path
 
-Records are appended while the run goes on, so a killed run can leave a half-written last
-line: `read_run` drops it (with a warning) instead of failing, and the resumed run rewrites that
-case. When a key appears twice (a case re-run after a resume) the later record wins.
+Durability: each record is one write and an fsync, so a kill -9 loses at most the case in flight;
+a killed run can leave a half-written last line, which readers skip (with a warning) and the next
+append starts a new line after. A resumed case appends a second record of its key: the later one
+wins, and the run compacts the file when it ends (one line per case again).
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
+import socket
 import warnings
 from pathlib import Path
 
+from lsbench.results.record import REQUIRED_FIELDS
+
 RUN_INFO = "run.json"
 RESULTS = "results.jsonl"
+FRESH_RESULTS = RESULTS + ".fresh"
+LOCK = "run.lock"
 
+
+class ResultsError(RuntimeError):
+    """A run folder that cannot be written (or is in use): one-line message naming the path."""
 
 
 def write_run_info(run_dir, info: dict) -> Path:
@@ -34,23 +47,42 @@ def write_run_info(run_dir, info: dict) -> Path:
     return path
 
 
-def append_record(run_dir, record: dict) -> None:
-    """Append one case record as a single line (one write call, flushed)."""
+def _json_default(o):
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def encode_record(record: dict) -> str:
+    """One line of results.jsonl (numpy scalars and arrays as plain JSON)."""
+    return json.dumps(record, default=_json_default) + "\n"
+
+
+def append_record(run_dir, record: dict, name: str = RESULTS) -> None:
+    """Append one record to RUN_DIR/name as a single line: one write, flushed and fsync'ed."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    line = json.dumps(record, sort_keys=True, default=str) + "\n"
-    with open(run_dir / RESULTS, "a") as f:
-        f.write(line)
+    line = encode_record(record)
+    with open(run_dir / name, "a+b") as f:
+        # A run killed mid-write leaves a last line without its newline: start a new line, or
+        # this record would be glued to the fragment and lost with it.
+        if f.tell() > 0:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                line = "\n" + line
+        f.write(line.encode())
         f.flush()
+        os.fsync(f.fileno())
 
 
-def read_records(path) -> list[dict]:
-    """Records of a results.jsonl file; unparsable lines are skipped with a warning."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    by_key: dict[str, dict] = {}
-    anonymous: list[dict] = []
+def _parse_lines(path: Path, warn):
+    """(line text, record or None) for every non-blank line; warn(message) for each line that is
+    not a record: not JSON (a truncated last line of a killed run), not an object, or without
+    the REQUIRED_FIELDS."""
     lines = path.read_text(errors="replace").splitlines()
     for i, line in enumerate(lines):
         if not line.strip():
@@ -58,18 +90,181 @@ def read_records(path) -> list[dict]:
         try:
             rec = json.loads(line)
         except json.JSONDecodeError:
-            where = "truncated last line" if i == len(lines) - 1 else f"bad line {i + 1}"
-            warnings.warn(f"{path}: {where} skipped (interrupted run?)", stacklevel=2)
+            where = "truncated last line" if i == len(lines) - 1 else f"line {i + 1} is not JSON"
+            warn(f"{path}: {where} skipped (interrupted run?)")
+            yield line, None
             continue
         if not isinstance(rec, dict):
-            warnings.warn(f"{path}: line {i + 1} is not an object; skipped", stacklevel=2)
-            continue
-        key = rec.get("key")
-        if key is None:
-            anonymous.append(rec)
+            warn(f"{path}: line {i + 1} is not a record (a JSON {type(rec).__name__}); skipped")
+            rec = None
+        elif missing := [f for f in REQUIRED_FIELDS if not isinstance(rec.get(f), str)]:
+            warn(f"{path}: line {i + 1} lacks {', '.join(missing)}; skipped")
+            rec = None
+        yield line, rec
+
+
+def _warn(message: str) -> None:
+    warnings.warn(message, stacklevel=3)
+
+
+def read_records(path, warn=_warn) -> list[dict]:
+    """Records of a results file, one per key (the later record of a key wins: a resumed case),
+    in the order the cases were last written. Lines that are no record are skipped; warn(message)
+    names each one (default: a UserWarning)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    by_key: dict[str, dict] = {}
+    for _, rec in _parse_lines(path, warn):
+        if rec is not None:
+            by_key.pop(rec["key"], None)
+            by_key[rec["key"]] = rec
+    return list(by_key.values())
+
+
+def write_lines(path: Path, lines: list[str]) -> None:
+    """Replace `path` by these lines atomically: written beside, fsync'ed, renamed over it."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as f:
+        f.writelines(line if line.endswith("\n") else line + "\n" for line in lines)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)  # the rename itself survives a crash
+    finally:
+        os.close(dir_fd)
+
+
+def compact(path: Path) -> None:
+    """Rewrite a results file atomically as one line per case: the last record of each key, in
+    the order read_records gives; superseded records and lines that are no record (fragments of
+    a killed run, named by the warnings of the run's first read) go."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    parsed = list(_parse_lines(path, lambda _msg: None))
+    last = {rec["key"]: i for i, (_, rec) in enumerate(parsed) if rec is not None}
+    keep = [line for i, (line, rec) in enumerate(parsed) if rec is not None and last[rec["key"]] == i]
+    if len(keep) != len(parsed) or not path.read_bytes().endswith(b"\n"):
+        write_lines(path, keep)
+
+
+def check_writable(run_dir: Path, fresh: bool) -> None:
+    """Fail before any case runs (ResultsError naming the path) when the run could not store what
+    it measures: results.jsonl (or the --fresh side file) not a writable file, or the folder not
+    writable where files are created or replaced."""
+    targets = [run_dir / RESULTS] + ([run_dir / FRESH_RESULTS] if fresh else [])
+    for path in targets:
+        if path.exists():
+            if not path.is_file():
+                raise ResultsError(f"cannot write results to {path}: not a file")
+            try:
+                open(path, "ab").close()
+            except OSError as exc:
+                raise ResultsError(f"cannot write results to {path}: {exc.strerror or exc}") from None
+    if (fresh or not targets[0].exists()) and not os.access(run_dir, os.W_OK | os.X_OK):
+        raise ResultsError(f"cannot write results to {targets[-1]}: folder {run_dir} is not writable")
+
+
+class RunLock:
+    """Exclusive lock on a run folder (fcntl.flock on RUN_DIR/run.lock) for as long as a run
+    writes it: a second run into the same folder fails at once, naming the holder. The kernel
+    drops the lock when the holder's process ends, however it ends (kill -9 included)."""
+
+    def __init__(self, run_dir, command: str):
+        self.path = Path(run_dir) / LOCK
+        self.command = command
+        self.fd: int | None = None
+
+    def __enter__(self) -> "RunLock":
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise ResultsError(f"cannot lock {self.path}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            raise ResultsError(f"{self.path.parent} is in use by another run ({holder}); wait for it "
+                               "or choose another --out") from None
+        import datetime as _dt
+
+        holder = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
+                  "since": _dt.datetime.now().astimezone().isoformat(timespec="seconds")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, (json.dumps(holder) + "\n").encode(), 0)
+        os.fsync(fd)
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            os.ftruncate(self.fd, 0)  # nobody holds it now
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+            os.close(self.fd)
+            self.fd = None
+
+
+def _read_holder(fd: int) -> str:
+    try:
+        h = json.loads(os.pread(fd, 65536, 0) or b"{}")
+        return f"pid {h['pid']} on {h['host']} since {h['since']}: {h['command']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder not yet written"
+
+
+class RunResults:
+    """The records of a run folder while a run (holding its RunLock) writes it.
+
+    A plain run appends to results.jsonl and may reuse the records there (`earlier`); when it
+    ends, however it ends short of kill -9, the file is compacted to one record per case.
+    A --fresh run reuses nothing: it appends to results.jsonl.fresh, and only when every case is
+    done does results.jsonl become the fresh records plus the earlier records of cases this run
+    did not have, in one rename. Until then results.jsonl is untouched: interrupting a --fresh
+    run loses no earlier result (its finished cases stay in results.jsonl.fresh, which the next
+    --fresh run starts anew)."""
+
+    def __init__(self, run_dir, fresh: bool, warn=_warn):
+        self.run_dir = Path(run_dir)
+        self.fresh = fresh
+        self.results = self.run_dir / RESULTS
+        self.side = self.run_dir / FRESH_RESULTS
+        self.stale_fresh = False
+        if fresh:
+            self.earlier: dict[str, dict] = {}
+            write_lines(self.side, [])
         else:
-            by_key[str(key)] = rec  # later record of the same case wins (resumed run)
-    return list(by_key.values()) + anonymous
+            self.earlier = {r["key"]: r for r in read_records(self.results, warn)}
+            self.stale_fresh = self.side.is_file() and self.side.stat().st_size > 0
+        self.written = 0
+
+    def append(self, record: dict) -> None:
+        path = self.side if self.fresh else self.results
+        try:
+            append_record(self.run_dir, record, path.name)
+        except OSError as exc:
+            raise ResultsError(f"cannot write results to {path}: {exc.strerror or exc} "
+                               f"(the record of {record.get('key')} is lost)") from None
+        self.written += 1
+
+    def finish(self, complete: bool) -> str:
+        """End the run: compact, or (a complete --fresh run) supersede results.jsonl. Returns
+        one sentence on where the records are."""
+        if not self.fresh:
+            compact(self.results)
+            return f"finished cases are kept in {self.results}"
+        if not complete:
+            return (f"{self.results} is unchanged (the --fresh run did not finish); its "
+                    f"{self.written} finished cases are in {self.side}")
+        fresh = read_records(self.side)
+        keys = {r["key"] for r in fresh}
+        kept = [r for r in read_records(self.results, lambda _m: None) if r["key"] not in keys]
+        write_lines(self.results, [encode_record(r) for r in kept + fresh])
+        self.side.unlink()
+        return f"{self.results} now holds this run's records" + (
+            f" and {len(kept)} earlier ones of cases it did not run" if kept else "")
 
 
 def read_run(run_dir) -> tuple[dict, list[dict]]:

@@ -3,12 +3,14 @@ versions that change figures, and whether the backends run on a GPU."""
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import importlib.metadata
 import os
 import platform
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 from lsbench.paths import source_checkout
 
@@ -41,6 +43,10 @@ def package_version(name: str) -> str | None:
         return None
 
 
+def package_versions() -> dict[str, str | None]:
+    return {name: package_version(name) for name in TRACKED_PACKAGES}
+
+
 def environment_info() -> dict:
     """What the machine and Python environment are; the runner adds devices and scenario."""
     return {
@@ -52,7 +58,7 @@ def environment_info() -> dict:
         "cpu_count": os.cpu_count(),
         "python": sys.version.split()[0],
         "python_implementation": platform.python_implementation(),
-        "versions": {name: package_version(name) for name in TRACKED_PACKAGES},
+        "versions": package_versions(),
     }
 
 
@@ -63,10 +69,39 @@ def code_state() -> tuple[str, bool]:
     return (commit or "unknown"), bool(dirty)
 
 
+def diff_hash(repo_dir) -> str | None:
+    """Short sha256 of a dirty work tree's changes against HEAD (tracked diffs and the untracked,
+    not ignored files), so records of two different dirty trees at one commit are told apart;
+    None for a clean tree or outside git."""
+    def git(*args) -> bytes | None:
+        try:
+            proc = subprocess.run(["git", "-C", str(repo_dir), *args], capture_output=True, timeout=60)
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return proc.stdout if proc.returncode == 0 else None
+
+    diff = git("diff", "HEAD", "--binary")
+    untracked = git("ls-files", "--others", "--exclude-standard", "-z")
+    if diff is None or untracked is None or not (diff or untracked):
+        return None
+    h = hashlib.sha256(diff)
+    for name in sorted(filter(None, untracked.split(b"\0"))):
+        h.update(b"\0" + name + b"\0")
+        try:
+            h.update((Path(os.fsdecode(repo_dir)) / os.fsdecode(name)).read_bytes())
+        except OSError:  # gone or unreadable since git listed it
+            pass
+    return h.hexdigest()[:16]
+
+
 def record_env() -> dict:
-    """The code fields every record carries."""
+    """The code and package fields every record carries (lsbench/results/record.py)."""
     commit, dirty = code_state()
-    return {"commit": commit, "dirty": dirty}
+    top = source_checkout()
+    return {"commit": commit, "dirty": dirty, "diff_hash": diff_hash(top) if dirty and top else None,
+            "versions": package_versions(),
+            # the test-only defect backends.build plants: it changes what an ok case measures
+            "planted_defect": os.environ.get("LSBENCH_PLANT_DEFECT") or None}
 
 
 def uses_gpu(backend_names) -> bool:
@@ -80,3 +115,19 @@ def uses_gpu(backend_names) -> bool:
         if name == "glsl" and not any(s in info["device"].lower() for s in ("llvmpipe", "softpipe", "lavapipe")):
             return True
     return False
+
+
+def device_info(backend_names) -> dict[str, dict]:
+    """{backend: {"device", "driver", "backend_version"}} as this run sees them (run.json, and
+    what a record must match to be reused); a backend that cannot start gets {"device": None,
+    "error": why} (its cases fail and say it too)."""
+    from lsbench import backends
+
+    devices = {}
+    for name in sorted(set(backend_names)):
+        try:
+            d = backends.get_device(name).info()
+            devices[name] = {"device": d["device"], "driver": d["driver"], "backend_version": d["backend_version"]}
+        except Exception as exc:
+            devices[name] = {"device": None, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__}
+    return devices

@@ -1,5 +1,6 @@
-"""One case, end to end: scene -> rays -> Embree -> GPU build -> GPU trace -> verify -> timing
--> record. Runs inside a worker process (lsbench/running/runner.py) or directly (`lsbench trace`)."""
+"""One case, end to end: scene -> rays -> Embree -> GPU build -> GPU trace -> verify -> work
+counters -> timing -> record. Runs inside a worker process (lsbench/running/runner.py) or directly
+(`lsbench trace`). The record it returns is lsbench.results.record.Record as a dict."""
 from __future__ import annotations
 
 import math
@@ -10,21 +11,43 @@ from pathlib import Path
 import numpy as np
 
 from lsbench.inputs.scenario import Case, RunSettings
+from lsbench.results.record import Record, result_settings
 
 
-def case_fields(case: Case) -> dict:
-    return {
-        "key": case.key, "scene": case.scene, "structure": case.structure, "backend": case.backend,
-        "resolution": case.resolution, "ls_n": case.ls_n, "ls_min_candidates": case.ls_min_candidates,
-        "rays": case.rays, "width": case.width, "height": case.height,
-    }
+def case_inputs(scene, rays) -> dict:
+    """Record fields that describe a case's loaded inputs: which scene and rays, by content."""
+    return {"scene": scene.name, "scene_source": scene.source, "scene_hash": scene.content_hash,
+            "triangles": scene.triangle_count, "rays_hash": rays.content_hash, "ray_count": rays.count}
 
 
-def failed_record(case: Case, reason: str, env: dict | None = None) -> dict:
-    rec = case_fields(case)
-    rec.update({"status": "failed", "reason": reason, "agreement": None})
-    rec.update(env or {})
+def new_record(case: Case, settings: RunSettings, env: dict | None = None, inputs: dict | None = None) -> Record:
+    """A record of `case` that names what it runs (status failed until execute says ok). env:
+    environment.record_env(); inputs: case_inputs() and device fields where already known."""
+    try:
+        params = case.build_params()
+        resolution, n, k = params.resolution, params.ls_n, params.ls_min_candidates
+    except ValueError:  # a resolution or structure that does not parse: the case fails
+        resolution, n, k = (None, None, None), case.ls_n, case.ls_min_candidates
+    camera = None
+    if case.camera is not None:
+        eye, target, up, fov = case.camera
+        camera = {"eye": list(eye), "target": list(target), "up": list(up), "fov": float(fov)}
+    path_like = "/" in case.scene or Path(case.scene).suffix
+    rec = Record(key=case.key, scene=Path(case.scene).stem if path_like else case.scene,
+                 scene_source=case.scene, structure=case.structure, backend=case.backend,
+                 resolution=str(case.resolution), resolution_x=resolution[0], resolution_y=resolution[1],
+                 resolution_z=resolution[2], ls_n=n, ls_min_candidates=k, rays=case.rays,
+                 width=case.width, height=case.height, camera=camera, settings=result_settings(settings))
+    rec.update(**(env or {}))
+    rec.update(**(inputs or {}))
     return rec
+
+
+def failed_record(case: Case, settings: RunSettings, reason: str, env: dict | None = None,
+                  inputs: dict | None = None) -> dict:
+    rec = new_record(case, settings, env, inputs)
+    rec.update(status="failed", reason=reason)
+    return rec.to_dict()
 
 
 def timing_fields(seconds: list[float], clock: str, ray_count: int, is_image: bool) -> dict:
@@ -39,13 +62,22 @@ def timing_fields(seconds: list[float], clock: str, ray_count: int, is_image: bo
     }
 
 
+def work_fields(work: np.ndarray) -> dict:
+    """Mean traversal iterations, candidate (ray/triangle) tests and Line Space lookups per ray,
+    from the profiling kernel's counters (what papers report per ray; thesis Fig. 4)."""
+    from lsbench.profile.heatmaps import CHANNELS
+
+    means = work.astype(np.float64).mean(axis=0) if len(work) else np.zeros(len(CHANNELS))
+    return {f"{name}_per_ray": float(means[i]) for i, name in enumerate(CHANNELS) if name != "clock"}
+
+
 def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hits: str | None = None,
             heatmap_dir: str | None = None, scene=None, rays=None) -> dict:
-    """Run one case and return its record. Driver limits and driver errors become a failed
-    record with the reason; bad input (scene/rays) raises SceneError/RayError to the caller."""
+    """Run one case and return its record (a dict, lsbench.results.record). Driver limits and
+    driver errors become a failed record with the reason; bad input (scene/rays) raises
+    SceneError/RayError to the caller."""
     from lsbench import backends
-    from lsbench.backends import BuildParams, DeviceError, DeviceLimitError
-    from lsbench.backends.structures.base import parse_resolution
+    from lsbench.backends import DeviceError, DeviceLimitError
 
     from lsbench.oracle.embree import embree_closest
     from lsbench.inputs.rays import make_rays
@@ -56,56 +88,51 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         scene = load_scene(case.scene)
     if rays is None:
         rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object())
-    rec = case_fields(case)
-    rec.update({"scene": scene.name, "scene_source": scene.source, "scene_hash": scene.content_hash,
-                "triangles": scene.triangle_count, "ray_count": rays.count, "rays_hash": rays.content_hash})
-    rec.update(env or {})
+    rec = new_record(case, settings, env, case_inputs(scene, rays))
     ref_prim, ref_t = embree_closest(scene, rays)
     if settings.embree_timing:
         from lsbench.oracle.embree import embree_trace_seconds
 
         emb = embree_trace_seconds(scene, rays, repeats=3)
         med = statistics.median(emb)
-        rec.update({"embree_trace_seconds": med,
-                    "embree_rays_per_second": rays.count / med if med > 0 else None})
+        rec.update(embree_trace_seconds=med, embree_rays_per_second=rays.count / med if med > 0 else None)
     built = None
     try:
         device = backends.get_device(case.backend)
         info = device.info()
-        rec.update({"device": info["device"], "driver": info["driver"],
-                    "backend_version": info["backend_version"]})
-        params = BuildParams(resolution=parse_resolution(case.resolution), ls_n=case.ls_n,
-                             ls_min_candidates=case.ls_min_candidates)
-        built = backends.build(device, case.structure, scene, params)
-        rec.update({"build_seconds": built.build_seconds, "memory_bytes": built.memory_bytes,
-                    "buffers": built.memory(), "stats": built.stats})
+        rec.update(device=info["device"], driver=info["driver"], backend_version=info["backend_version"])
+        built = backends.build(device, case.structure, scene, case.build_params())
+        rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
+                   buffers=built.memory(), stats=built.stats)
         hits = backends.trace(built, rays)
         lo, hi = scene.bounds
-        acc = compare(hits.prim_ids, hits.distances, ref_prim, ref_t, rel_tol=settings.rel_tol,
-                      scene_extent=float(np.linalg.norm(hi - lo)))
-        rec.update(acc.to_dict())
-        rec["agreement"] = acc.agreement
+        rec.accuracy = compare(hits.prim_ids, hits.distances, ref_prim, ref_t, rel_tol=settings.rel_tol,
+                               scene_extent=float(np.linalg.norm(hi - lo)))
         if dump_hits:
             np.savez(dump_hits, origins=rays.origins, directions=rays.directions,
                      prim_ids=hits.prim_ids, distances=hits.distances,
                      embree_prim_ids=ref_prim, embree_distances=ref_t)
+        try:  # the counter kernel binds one more buffer: a driver limit there leaves the case ok
+            rec.update(**work_fields(backends.trace(built, rays, work=True).work), work_counters_error="")
+        except (DeviceLimitError, DeviceError) as exc:
+            rec.update(work_counters_error=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
         timing = backends.time_trace(built, rays, settings.warmup, settings.repeats)
-        rec.update(timing_fields(timing.seconds, timing.clock, rays.count, rays.width > 0))
+        rec.update(**timing_fields(timing.seconds, timing.clock, rays.count, rays.width > 0))
         if heatmap_dir:
             from lsbench.profile import heatmaps as profile
 
-            rec["heatmaps"] = profile.write_heatmaps(built, rays, heatmap_dir, case.key)
-            rec["work_clock"] = profile.clock_info(device)
-        rec["status"] = "ok"
-        rec["reason"] = ""
+            rec.update(heatmaps=profile.write_heatmaps(built, rays, heatmap_dir, case.key),
+                       work_clock=profile.clock_info(device))
+        rec.update(status="ok", reason="")
     except (DeviceLimitError, DeviceError, ValueError, MemoryError) as exc:
-        rec.update({"status": "failed", "reason": f"{type(exc).__name__}: {exc}".splitlines()[0][:500],
-                    "agreement": None})
+        rec.update(status="failed", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
     except Exception as exc:  # a bug: keep the case's record, with where it happened
         tb = traceback.extract_tb(exc.__traceback__)[-1]
-        rec.update({"status": "failed", "agreement": None,
-                    "reason": f"{type(exc).__name__}: {exc} ({Path(tb.filename).name}:{tb.lineno})"[:500]})
+        rec.update(status="failed",
+                   reason=f"{type(exc).__name__}: {exc} ({Path(tb.filename).name}:{tb.lineno})"[:500])
     finally:
         if built is not None:
             built.release()
-    return rec
+    if rec.status != "ok":
+        rec.accuracy = None  # accuracy columns are measured only for an ok case
+    return rec.to_dict()

@@ -1,65 +1,31 @@
 """Run a scenario: every case in its own worker process with a time limit, so a driver crash,
-hang or out-of-memory ends that case only. Records are appended to results.jsonl as cases
-finish; a rerun with the same output folder skips finished cases (resume)."""
+hang or out-of-memory ends that case only, and the worker dies with the run (PR_SET_PDEATHSIG).
+Records go to the run folder through lsbench.results.store as cases finish; a rerun into the same
+folder reuses a record only where it still stands for the case (record.reuse_mismatch) and says
+why it redoes the rest."""
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import signal
+import sys
+import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
-from lsbench.running.execute import execute, failed_record
 from lsbench.inputs.scenario import Case, RunSettings, Scenario
-
-RESULTS = "results.jsonl"
-
-
-def read_records(path: Path) -> list[dict]:
-    """Records of results.jsonl; a truncated last line (a run killed mid-write) is ignored."""
-    out = []
-    if not path.exists():
-        return out
-    for line in path.read_text().splitlines():
-        line = line.strip()
-        if not line:
-            continue
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return out
-
-
-def append_record(path: Path, record: dict) -> None:
-    # One write + fsync per record: a kill -9 loses at most the case in flight.
-    line = json.dumps(record, default=_json_default) + "\n"
-    with open(path, "a+b") as f:
-        # A run killed mid-write leaves a last line without its newline: start a new line, or
-        # this record would be glued to the fragment and lost with it.
-        if f.tell() > 0:
-            f.seek(-1, os.SEEK_END)
-            if f.read(1) != b"\n":
-                line = "\n" + line
-        f.write(line.encode())
-        f.flush()
-        os.fsync(f.fileno())
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
-
+from lsbench.results.record import reuse_mismatch, result_settings
+from lsbench.results.store import RunResults
+from lsbench.running.execute import case_inputs, execute, failed_record
 
 # Reasons that mean "an allocation failed": under --memory-budget they name the budget.
 _ALLOCATION_FAILURES = ("MemoryError", "OUT_OF_", "ALLOCATION_FAILURE", "GL_OUT_OF_MEMORY",
                         "Cannot allocate", "std::bad_alloc", "allocating buffer")
+
+
+class Interrupted(KeyboardInterrupt):
+    """Ctrl-C during a run; the message says where the finished cases are."""
 
 
 def budget_text(settings: RunSettings) -> str:
@@ -83,7 +49,29 @@ def _test_fault(case: Case) -> None:
         time.sleep(10**6)
 
 
-def _worker(conn, case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None) -> None:
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker end when the run that started it ends, however it ends (kill -9
+    included): Linux sends SIGKILL on the parent's death (prctl(2) PR_SET_PDEATHSIG); elsewhere
+    a thread watches for the parent to go. A worker hung in a driver call dies either way."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    else:
+        def watch():
+            while os.getppid() == parent_pid:
+                time.sleep(0.5)
+            os._exit(1)
+
+        threading.Thread(target=watch, daemon=True).start()
+    if os.getppid() != parent_pid:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _worker(conn, parent_pid: int, case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None,
+            inputs: dict | None) -> None:
+    _die_with_parent(parent_pid)
     # The parent handles Ctrl-C; a worker just dies with it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _test_fault(case)
@@ -95,9 +83,9 @@ def _worker(conn, case: Case, settings: RunSettings, env: dict, heatmap_dir: str
     try:
         rec = execute(case, settings, env, heatmap_dir=heatmap_dir)
     except MemoryError:
-        rec = failed_record(case, f"{budget_text(settings)} exceeded (MemoryError)", env)
+        rec = failed_record(case, settings, f"{budget_text(settings)} exceeded (MemoryError)", env, inputs)
     except Exception as exc:  # bad scene or rays: the case fails with the one-line reason
-        rec = failed_record(case, f"{type(exc).__name__}: {exc}".splitlines()[0], env)
+        rec = failed_record(case, settings, f"{type(exc).__name__}: {exc}".splitlines()[0], env, inputs)
     if settings.memory_budget_mb and rec.get("status") != "ok" \
             and any(s in str(rec.get("reason")) for s in _ALLOCATION_FAILURES) \
             and "memory budget" not in str(rec.get("reason")):
@@ -106,12 +94,26 @@ def _worker(conn, case: Case, settings: RunSettings, env: dict, heatmap_dir: str
     conn.close()
 
 
-def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None = None) -> dict:
+def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None = None,
+                      inputs: dict | None = None) -> dict:
+    """The record of `case` run in a fresh worker process. `inputs` (what plan_cases expects:
+    scene and ray hashes, device) fill the record of a worker that crashed or timed out. Call it
+    from the main thread: the worker's death signal follows the thread that started it."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_worker, args=(child, case, settings, env, heatmap_dir), daemon=True)
+    proc = ctx.Process(target=_worker, args=(child, os.getpid(), case, settings, env, heatmap_dir, inputs),
+                       daemon=True)
     proc.start()
     child.close()
+    try:
+        return _wait_for_record(proc, parent, case, settings, env, inputs)
+    finally:  # Ctrl-C or an error here: the worker goes too
+        if proc.is_alive():
+            proc.kill()
+            proc.join(5)
+
+
+def _wait_for_record(proc, parent, case, settings, env, inputs) -> dict:
     rec = None
     deadline = time.monotonic() + settings.timeout_seconds
     while time.monotonic() < deadline:
@@ -131,7 +133,8 @@ def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir:
         if proc.is_alive():
             proc.kill()
             proc.join(5)
-            return failed_record(case, f"timed out after {settings.timeout_seconds:g} s (worker killed)", env)
+            return failed_record(case, settings, f"timed out after {settings.timeout_seconds:g} s (worker killed)",
+                                 env, inputs)
         proc.join(5)
         code = proc.exitcode
         what = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 else f"exit code {code}"
@@ -139,37 +142,101 @@ def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir:
         if settings.memory_budget_mb:
             # drivers abort() or segfault when malloc fails under RLIMIT_AS instead of reporting it
             reason += f"; the {budget_text(settings)} was in force: likely exceeded"
-        return failed_record(case, reason, env)
+        return failed_record(case, settings, reason, env, inputs)
     proc.join(10)
-    if proc.is_alive():
-        proc.kill()
     return rec
 
 
-def run_scenario(scenario: Scenario, out_dir: Path, env: dict, fresh: bool = False,
-                 heatmaps: bool | None = None, log=print) -> list[dict]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    results = out_dir / RESULTS
-    if fresh and results.exists():
-        results.unlink()
-    done = {r.get("key"): r for r in read_records(results)}
+@dataclass
+class CasePlan:
+    case: Case
+    expected: dict  # the identity and environment fields this run would record for the case
+
+
+def plan_cases(scenario: Scenario, env: dict, devices: dict[str, dict]) -> list[CasePlan]:
+    """What each case would record about its inputs and environment, before any case runs:
+    every scene and ray set is made here once (a missing or corrupt file is a SceneError or
+    RayError now, not a run of failed cases) and known by its content hash. devices: per
+    backend, environment.device_info()."""
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenes import load_scene
+
+    inputs: dict[tuple, dict] = {}
+    for spec in dict.fromkeys(c.scene for c in scenario.cases):
+        scene = load_scene(spec)
+        for c in scenario.cases:
+            ray_id = (spec, c.rays, c.width, c.height, c.camera)
+            if c.scene == spec and ray_id not in inputs:
+                inputs[ray_id] = case_inputs(scene, make_rays(c.rays, scene, c.width, c.height, c.camera_object()))
+    settings = result_settings(scenario.settings)
+    plans = []
+    for c in scenario.cases:
+        device = devices.get(c.backend) or {}
+        expected = dict(inputs[(c.scene, c.rays, c.width, c.height, c.camera)], **env, settings=settings,
+                        **{f: device.get(f) for f in ("device", "driver", "backend_version")})
+        plans.append(CasePlan(c, expected))
+    return plans
+
+
+def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: dict, fresh: bool = False,
+                 heatmaps: bool | None = None, keep_failed: bool = False, log=print) -> list[dict]:
+    """Run the planned cases of `scenario` into out_dir (whose store.RunLock the caller holds) and
+    return the records, reused ones included. fresh: reuse nothing and supersede results.jsonl
+    only once every case is done; keep_failed: reuse failed records too instead of retrying them."""
+    results = RunResults(out_dir, fresh, warn=lambda m: log(f"warning: {m}"))
+    if results.stale_fresh:
+        log(f"warning: {results.side} holds an unfinished --fresh run; this run leaves it alone "
+            "(the next --fresh run starts it anew)")
     want_heatmaps = scenario.settings.heatmaps if heatmaps is None else heatmaps
+    decisions = []
+    for plan in plans:
+        old = results.earlier.get(plan.case.key)
+        why = "new" if old is None else reuse_mismatch(old, plan.expected, want_heatmaps, keep_failed)
+        decisions.append((plan, old, why))
+    log(resume_text(decisions, fresh))
     records = []
-    total = len(scenario.cases)
-    for i, case in enumerate(scenario.cases, 1):
-        if case.key in done:
-            log(f"[{i}/{total}] {case.key}: done earlier ({done[case.key].get('status')}), skipped")
-            records.append(done[case.key])
-            continue
-        log(f"[{i}/{total}] {case.key}: running")
-        t0 = time.perf_counter()
-        heatmap_dir = str(out_dir / "heatmaps") if want_heatmaps else None
-        rec = run_case_isolated(case, scenario.settings, env, heatmap_dir)
-        rec["wall_seconds"] = time.perf_counter() - t0
-        append_record(results, rec)
-        records.append(rec)
-        log(f"[{i}/{total}] {case.key}: " + progress_text(rec))
+    total = len(plans)
+    try:
+        for i, (plan, old, why) in enumerate(decisions, 1):
+            case = plan.case
+            if why is None:
+                log(f"[{i}/{total}] {case.key}: done earlier ({old.get('status')}), reused")
+                records.append(old)
+                continue
+            log(f"[{i}/{total}] {case.key}: running" + ("" if why == "new" else f" ({why})"))
+            t0 = time.perf_counter()
+            heatmap_dir = str(out_dir / "heatmaps") if want_heatmaps else None
+            rec = run_case_isolated(case, scenario.settings, env, heatmap_dir, plan.expected)
+            rec["wall_seconds"] = time.perf_counter() - t0
+            results.append(rec)
+            records.append(rec)
+            log(f"[{i}/{total}] {case.key}: " + progress_text(rec))
+    except KeyboardInterrupt:
+        raise Interrupted(results.finish(complete=False)) from None
+    except BaseException:
+        try:  # an error is on its way out: tidy what can be tidied, without hiding it
+            results.finish(complete=False)
+        except OSError:
+            pass
+        raise
+    log(results.finish(complete=True))
     return records
+
+
+def resume_text(decisions, fresh: bool) -> str:
+    """One line: how many records are reused and why the other cases run."""
+    total = len(decisions)
+    if fresh:
+        return f"--fresh: running all {total} cases (earlier records are superseded when the run finishes)"
+    reused = sum(1 for _, _, why in decisions if why is None)
+    reasons: dict[str, int] = {}
+    for _, _, why in decisions:
+        if why is not None:
+            reasons[why] = reasons.get(why, 0) + 1
+    text = f"reusing {reused} of {total} earlier records"
+    if reasons:
+        text += f"; running {total - reused}: " + ", ".join(f"{n} {why}" for why, n in reasons.items())
+    return text
 
 
 def progress_text(rec: dict) -> str:
