@@ -74,11 +74,14 @@ def run_scenario_file(args):
             devices = device_info(c.backend for c in scenario.cases)
             env = record_env()
             plans = plan_cases(scenario, env, devices)  # bad scene or ray files: exit 2 here
-            write_run_json(out, scenario, devices, sys.argv)
+            if not args.fresh:  # a --fresh run replaces run.json with results.jsonl, once done
+                write_run_json(out, scenario, devices, sys.argv)
             say(f"lsbench run {scenario.name}: {len(scenario.cases)} cases -> {out}")
             records = run_scenario(scenario, plans, out, env, fresh=args.fresh,
                                    heatmaps=True if args.heatmaps else None, keep_failed=args.keep_failed,
                                    log=say)
+            if args.fresh:
+                write_run_json(out, scenario, devices, sys.argv)
     except ResultsError as exc:
         raise UsageError(str(exc)) from None
     say()

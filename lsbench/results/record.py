@@ -12,6 +12,7 @@ that change results) must equal what the run would produce now (`reuse_mismatch`
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 
 from lsbench.oracle.verify import Accuracy
@@ -128,8 +129,10 @@ NOT_RESULT_SETTINGS = frozenset({"width", "height", "gpu_width", "gpu_height", "
 
 
 def result_settings(settings) -> dict:
-    """The run settings (lsbench.inputs.scenario.RunSettings) that change a case's results."""
-    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in NOT_RESULT_SETTINGS}
+    """The run settings (lsbench.inputs.scenario.RunSettings) that change a case's results, as
+    a stored record holds them (through JSON: a tuple setting compares as the list it is read as)."""
+    chosen = {k: v for k, v in dataclasses.asdict(settings).items() if k not in NOT_RESULT_SETTINGS}
+    return json.loads(json.dumps(chosen, default=str))
 
 
 # Environment fields that must be equal for a record to be reused, in the order reasons are told.

@@ -153,7 +153,7 @@ def compact(path: Path) -> None:
 def check_writable(run_dir: Path, fresh: bool) -> None:
     """Fail before any case runs (ResultsError naming the path) when the run could not store what
     it measures: results.jsonl (or the --fresh side file) not a writable file, or the folder not
-    writable where files are created or replaced."""
+    writable."""
     targets = [run_dir / RESULTS] + ([run_dir / FRESH_RESULTS] if fresh else [])
     for path in targets:
         if path.exists():
@@ -163,7 +163,8 @@ def check_writable(run_dir: Path, fresh: bool) -> None:
                 open(path, "ab").close()
             except OSError as exc:
                 raise ResultsError(f"cannot write results to {path}: {exc.strerror or exc}") from None
-    if (fresh or not targets[0].exists()) and not os.access(run_dir, os.W_OK | os.X_OK):
+    # run.json and compaction write beside and rename; a new results.jsonl is created
+    if not os.access(run_dir, os.W_OK | os.X_OK):
         raise ResultsError(f"cannot write results to {targets[-1]}: folder {run_dir} is not writable")
 
 
