@@ -244,7 +244,8 @@ def test_unwritable_dump_hits_fails_before_tracing(tmp_path):
                    "--resolution", "4", "--size", "16x12", "--dump-hits", target)
     assert proc.returncode == 2 and proc.stdout == "", proc.stdout + proc.stderr
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("lsbench: error: --dump-hits") and str(target) in lines[0]
+    assert len(lines) == 1 and lines[0].startswith("lsbench: error:") and "--dump-hits" in lines[0], proc.stderr
+    assert f"cannot write {target}" in lines[0]
 
 
 def test_results_lines_that_are_no_record_do_not_stop_resume(tmp_path):
