@@ -153,6 +153,10 @@ def test_case_key_names_the_file_and_the_parameters_built(tmp_path, monkeypatch)
     assert Case("cornell", "grid", "glsl", "8").key == Case("cornell", "grid", "glsl", "8x8x8").key
     assert Case("cornell", "svo-ls", "glsl", "8", ls_n=0).key.endswith("|n1|k0")  # N = 0 builds N = 1
     assert Case("cornell", "grid", "glsl", "8", ls_n=3, ls_min_candidates=4).key.endswith("|n0|k0")
+    cam = ((1100.0, 180.0, -40.0), (0.1, 0.0, 0.0), (0.0, 1.0, 0.0), 65.0)
+    assert "@cam(1100,180,-40,0.1,0,0,0,1,0,65)|" in Case("cornell", "grid", "glsl", "8", camera=cam).key
+    nudged = (cam[0], (0.1000001, 0.0, 0.0), *cam[2:])
+    assert Case("cornell", "grid", "glsl", "8", camera=nudged).key != Case("cornell", "grid", "glsl", "8", camera=cam).key
     scen = tmp_path / "s.toml"
     scen.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["svo-ls"]\nbackends = ["glsl"]\n'
                     'resolutions = [8, "8x8x8"]\nls_n = [0, 1]\n')

@@ -89,6 +89,13 @@ def input_label(spec: str) -> str:
     return path.as_posix()
 
 
+def _exact(value) -> str:
+    """A number as its shortest exact text (1100, 0.1, 1e-07): two cameras that differ in the
+    last digit are two cases."""
+    text = repr(float(value))
+    return text[:-2] if text.endswith(".0") else text
+
+
 @dataclass(frozen=True)
 class Case:
     scene: str  # built-in name or path
@@ -130,7 +137,7 @@ class Case:
         rays = f"{input_label(self.rays)}@{self.width}x{self.height}"
         if self.camera is not None:
             eye, target, up, fov = self.camera
-            rays += "@cam(" + ",".join(f"{v:g}" for v in (*eye, *target, *up, fov)) + ")"
+            rays += "@cam(" + ",".join(_exact(v) for v in (*eye, *target, *up, fov)) + ")"
         return f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}"
 
     def camera_object(self):
