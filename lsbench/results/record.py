@@ -119,13 +119,14 @@ def field_names() -> tuple[str, ...]:
 REQUIRED_FIELDS = ("key", "status")
 
 # RunSettings that do not change what an ok case measures, so they are not part of a record's
-# `settings`: the case's own fields carry what ran (image size, ray set), min_agreement is a
-# verdict applied when judging, timeout and memory budget only decide whether a case fails
+# `settings`: the case's own fields carry what ran (image size, ray set), the gate's thresholds
+# (min_agreement, max_unexplained) are verdicts applied when judging, timeout and memory budget
+# only decide whether a case fails
 # (failed cases are retried), and a record with heatmaps serves a run without them (one without
 # is redone when they are wanted). Any other setting, including one added later, counts as
 # changing results.
 NOT_RESULT_SETTINGS = frozenset({"width", "height", "gpu_width", "gpu_height", "rays", "min_agreement",
-                                 "timeout_seconds", "memory_budget_mb", "heatmaps"})
+                                 "max_unexplained", "timeout_seconds", "memory_budget_mb", "heatmaps"})
 
 
 def result_settings(settings) -> dict:
