@@ -88,7 +88,7 @@ def diff_hash(repo_dir) -> str | None:
     for name in sorted(filter(None, untracked.split(b"\0"))):
         h.update(b"\0" + name + b"\0")
         try:
-            h.update((Path(os.fsdecode(repo_dir)) / os.fsdecode(name)).read_bytes())
+            h.update((Path(repo_dir) / os.fsdecode(name)).read_bytes())
         except OSError:  # gone or unreadable since git listed it
             pass
     return h.hexdigest()[:16]
