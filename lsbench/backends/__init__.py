@@ -14,10 +14,10 @@ import numpy as np
 
 from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
-from .structures.base import BuildParams, Built, GridGeometry, Hits, with_work_counters
+from .structures.base import BuildParams, BuildResult, Built, GridGeometry, Hits, with_work_counters
 
 BACKENDS = ("glsl", "opencl")
-# Hit id of a ray whose traversal loops the driver cut short (shaders/common/scene.h).
+# Hit id of a ray whose traversal loops the driver cut short (cut_hit, shaders/common/trace.h).
 LOOP_CUT_PRIM = -2
 _devices: dict[str, Device] = {}
 
@@ -58,15 +58,14 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     }
     device.finish()
     t0 = time.perf_counter()
-    buffers, uniforms, trace_spec, stats = module.build(device, scene_buffers, scene.triangle_count,
-                                                        geometry, params)
+    result = module.build(device, scene_buffers, scene.triangle_count, geometry, params)
     device.finish()
     seconds = time.perf_counter() - t0
     defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
     if defect.startswith("drop-reference"):
-        _plant_dropped_reference(device, buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
-    return Built(structure, device, params, geometry, scene_buffers, buffers, uniforms, trace_spec,
-                 build_seconds=seconds, stats=stats)
+        _plant_dropped_reference(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
+    return Built(structure, device, params, geometry, scene_buffers, result.buffers, result.uniforms,
+                 result.trace_spec, build_seconds=seconds, stats=result.stats)
 
 
 _warm: set[int] = set()

@@ -1,8 +1,10 @@
-"""What every backend provides: buffers, compiled kernels, dispatch, scan, timing.
+"""What every backend provides: buffers, compiled kernels, dispatch, voxelization, scan, timing,
+and the device clock of the profiling kernels.
 
-Structures (backends/structures/*.py) are written once against this interface; `glsl.py` and
-`opencl.py` implement it with moderngl and pyopencl. Nothing here runs on the host in place of
-the device: every build and trace step is a kernel launch.
+Structures (backends/structures/*.py) are written once against this interface and never ask
+which backend they run on; `glsl.py` and `opencl.py` implement it with moderngl and pyopencl.
+Nothing here runs on the host in place of the device: every build and trace step is a kernel
+launch.
 """
 from __future__ import annotations
 
@@ -59,6 +61,9 @@ class Timing:
 
 class Device(abc.ABC):
     backend: str  # "glsl" or "opencl"
+    # The exact triangle/shaft test the Line Space build runs fastest on this backend's driver
+    # (structures/linespace.py: "sat" separating axes, or "clip" Sutherland-Hodgman clipping).
+    line_space_test: str
 
     @abc.abstractmethod
     def info(self) -> dict:
@@ -79,6 +84,26 @@ class Device(abc.ABC):
 
     @abc.abstractmethod
     def fill_zero(self, buf: DeviceBuffer) -> None: ...
+
+    @abc.abstractmethod
+    def release(self, buf: DeviceBuffer) -> None:
+        """Free buf's device memory now (the driver's handle is unusable afterwards)."""
+
+    @abc.abstractmethod
+    def compile(self, spec: KernelSpec) -> object:
+        """Compile spec's kernel (cached by spec.key) and return the driver's handle; recipes call
+        it in prepare() so that no build or trace timing includes a compile."""
+
+    @abc.abstractmethod
+    def compile_voxelizer(self, spec: KernelSpec) -> object:
+        """Compile what `voxelize` runs for spec (cached), as `compile` does for dispatch."""
+
+    @abc.abstractmethod
+    def voxelize(self, spec: KernelSpec, n_tris: int, buffers: dict[str, DeviceBuffer],
+                 uniforms: dict[str, object], resolution: tuple[int, int, int]) -> None:
+        """Conservative voxelization of n_tris triangles into a grid of `resolution` (thesis 3.4):
+        spec's voxelize_column (shaders/common/grid.h) per raster fragment on GLSL, its body once
+        per triangle as a compute kernel on OpenCL. Same voxel -> triangle sets either way."""
 
     @abc.abstractmethod
     def dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
@@ -114,6 +139,18 @@ class Device(abc.ABC):
     def time_dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
                       uniforms: dict[str, object] | None, warmup: int, repeats: int) -> Timing:
         """Warm-up launches (not counted: compile, first launch), then `repeats` timed ones."""
+
+    # --- device clock of the profiling kernels (COUNT_WORK, shaders/common/trace.h) --------------
+    @abc.abstractmethod
+    def clock_defines(self) -> tuple[tuple[str, str], ...]:
+        """Defines that give the profiling kernels a device clock (CLOCK_START()/CLOCK_ELAPSED(),
+        preludes + common/trace.h), only where the device has one; () elsewhere, and the counters'
+        clock field then reads 0. `clock_info` describes the same choice."""
+
+    @abc.abstractmethod
+    def clock_info(self) -> dict:
+        """What the clock field of the work counters holds: available, unit, source, and a note
+        naming the device (and why there is no clock where there is none)."""
 
     def check_size(self, name: str, nbytes: int) -> None:
         limit = self.max_buffer_bytes

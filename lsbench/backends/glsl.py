@@ -9,7 +9,7 @@ import numpy as np
 
 from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
                      start_failure_hint)
-from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
+from .kernels import SHADER_ROOT, KernelSpec, kernel_defines, numbered, read_common
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 SCAN_BLOCK = 256  # items per work group in the prefix-sum kernels (2 per invocation)
@@ -37,7 +37,7 @@ def compute_source(spec: KernelSpec) -> str:
         "#version 450\n"
         + ("#extension GL_ARB_shader_clock : require\n" if ("USE_CLOCK", "1") in spec.defines else "")
         + f"layout(local_size_x = {spec.local_size}) in;\n"
-        + _prelude() + define_lines(spec.defines) + has_lines(spec) + declarations(spec) + read_common(spec.headers)
+        + _prelude() + kernel_defines(spec) + declarations(spec) + read_common(spec.headers)
         + "\nvoid main() {\n"
         # Two-dimensional dispatch: more than 65 535 groups spill into y.
         f"    uint gid = (gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x) * {spec.local_size}u"
@@ -50,6 +50,7 @@ def compute_source(spec: KernelSpec) -> str:
 class GLSLDevice(Device):
     backend = "glsl"
     limit_name = "GL_MAX_SHADER_STORAGE_BLOCK_SIZE"
+    line_space_test = "sat"  # llvmpipe: 10x slower on the clipper's indexed arrays (linespace.py)
 
     def __init__(self):
         import moderngl
@@ -133,8 +134,28 @@ class GLSLDevice(Device):
     def release(self, buf):
         buf.handle.release()
 
+    # --- device clock ----------------------------------------------------------------------
+    def clock_defines(self):
+        """GL_ARB_shader_clock where the driver has it (compute_source then adds the #extension
+        line): CLOCK_NOW() = clock2x32ARB().x, shaders/common/trace.h."""
+        return (("USE_CLOCK", "1"),) if "GL_ARB_shader_clock" in self.ctx.extensions else ()
+
+    def clock_info(self):
+        name = self.ctx.info["GL_RENDERER"]
+        if not self.clock_defines():
+            return {"available": False, "unit": None, "source": None,
+                    "note": f"no device clock on {name}: the GL driver lacks GL_ARB_shader_clock"}
+        if "llvmpipe" in name.lower():
+            unit = "ns"
+            note = (f"GL_ARB_shader_clock on {name}: clock2x32ARB() ticks in nanoseconds (wall time), only "
+                    "the low 32 bits are valid, 8 SIMD lanes share one value (per-ray time of its 8-ray group)")
+        else:
+            unit = "shader clock ticks"
+            note = f"GL_ARB_shader_clock (clock2x32ARB().x, low 32 bits) on {name}; GPU cycles on NVIDIA"
+        return {"available": True, "unit": unit, "source": "clock2x32ARB", "note": note}
+
     # --- kernels ---------------------------------------------------------------------------
-    def program(self, spec: KernelSpec):
+    def compile(self, spec: KernelSpec):
         prog = self._programs.get(spec.key)
         if prog is None:
             limit = int(self.ctx.info["GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"])
@@ -175,7 +196,7 @@ class GLSLDevice(Device):
     def dispatch(self, spec, n_items, buffers, uniforms=None):
         if n_items <= 0:
             return
-        prog = self.program(spec)
+        prog = self.compile(spec)
         self._bind(prog, spec, n_items, buffers, uniforms)
         gx, gy = self._groups(spec, n_items)
         prog.run(gx, gy, 1)
@@ -186,7 +207,7 @@ class GLSLDevice(Device):
         self.ctx.finish()
 
     def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats):
-        prog = self.program(spec)
+        prog = self.compile(spec)
         self._bind(prog, spec, n_items, buffers, uniforms)
         gx, gy = self._groups(spec, n_items)
         for _ in range(max(warmup, 1)):
@@ -258,13 +279,13 @@ class GLSLDevice(Device):
         return int(np.frombuffer(buf.handle.read(size=4, offset=4 * int(index)), np.uint32)[0])
 
     # --- raster voxelization ---------------------------------------------------------------
-    def raster_program(self, spec: KernelSpec):
+    def compile_voxelizer(self, spec: KernelSpec):
         """Vertex + geometry + fragment program for the conservative voxelizer of thesis 3.4:
         one point per triangle, the geometry shader projects along the dominant axis and emits
         the dilated footprint, each fragment tests its column's depth neighbours."""
         prog = self._programs.get(("raster",) + spec.key)
         if prog is None:
-            head = "#version 450\n" + _prelude() + define_lines(spec.defines) + has_lines(spec) + declarations(spec) \
+            head = "#version 450\n" + _prelude() + kernel_defines(spec) + declarations(spec) \
                 + read_common(spec.headers) + "\n"
             stage = lambda f: head + (SHADER_ROOT / "glsl" / f).read_text()  # noqa: E731
             try:
@@ -277,9 +298,11 @@ class GLSLDevice(Device):
             self._programs[("raster",) + spec.key] = prog
         return prog
 
-    def rasterize_triangles(self, spec, n_tris, buffers, uniforms, viewport: int):
-        """Draw n_tris points through the raster voxelizer into an attachment-less-sized
-        viewport of viewport x viewport pixels (one pixel = one voxel column)."""
+    def voxelize(self, spec, n_tris, buffers, uniforms, resolution):
+        """Draw n_tris points through the raster voxelizer into a viewport of R x R pixels, R the
+        largest grid side (one pixel = one voxel column of the projection axis)."""
+        viewport = max(int(r) for r in resolution)
+        uniforms = dict(uniforms, viewport_size=float(viewport))
         # Checked before any GL call: an incomplete framebuffer leaves a sticky GL error that
         # would fail the next, unrelated call on this context (found by tests/test_limits.py).
         limit = min(int(self.ctx.info["GL_MAX_RENDERBUFFER_SIZE"]), *map(int, self.ctx.info["GL_MAX_VIEWPORT_DIMS"]))
@@ -287,7 +310,7 @@ class GLSLDevice(Device):
             raise DeviceLimitError(
                 f"{spec.name}: raster voxelization needs a {viewport}x{viewport} viewport, over the "
                 f"driver's {limit} (GL_MAX_VIEWPORT_DIMS / GL_MAX_RENDERBUFFER_SIZE)")
-        prog = self.raster_program(spec)
+        prog = self.compile_voxelizer(spec)
         self._bind(prog, spec, n_tris, buffers, uniforms)
         # llvmpipe accepts a framebuffer without attachments, moderngl wants one: a 1-byte
         # renderbuffer of the viewport size with colour writes off costs viewport^2 bytes.

@@ -5,6 +5,11 @@ A kernel's algorithm lives once, in `shaders/common/*.h`, as a function
 names the buffers and scalar arguments it reads; each backend generates the declarations its
 language needs (GLSL: std430 SSBOs + uniforms; OpenCL: kernel parameters gathered into a `Ctx`
 struct) and a tiny entry point that bounds-checks `gid` against `n_items` and calls the body.
+
+Which code of the headers compiles is chosen explicitly, never by the buffers a spec binds:
+`#define KERNEL_<name>` (the spec's name) guards the kernel's body and the helpers only it uses,
+and the spec's `defines` set the features a header section is optional for (LEAF_LINE_SPACE:
+cells with a Line Space; COUNT_WORK: profiling counters; OCT_DEPTH, LS_CLIP_SH, ...).
 """
 from __future__ import annotations
 
@@ -65,10 +70,9 @@ def define_lines(defines: tuple[tuple[str, str], ...]) -> str:
     return "".join(f"#define {k} {v}\n" for k, v in defines)
 
 
-def has_lines(spec: "KernelSpec") -> str:
-    """HAS_<buffer> for each buffer the kernel binds: common code guards the sections that
-    need a buffer with it, so one header serves kernels with different buffer sets."""
-    return "".join(f"#define HAS_{b.name} 1\n" for b in spec.buffers)
+def kernel_defines(spec: "KernelSpec") -> str:
+    """The lines both backends put before the headers: KERNEL_<name>, then the spec's defines."""
+    return f"#define KERNEL_{spec.name} 1\n" + define_lines(spec.defines)
 
 
 def numbered(source: str) -> str:
@@ -79,9 +83,24 @@ def numbered(source: str) -> str:
 # --- Specs shared by every structure -------------------------------------------------------
 SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
-# loop_probe = 2: the driver loop-limit probe of every traversal (cut_hit, shaders/common/scene.h).
+# What every traversal kernel reads besides its structure: trace.h (rays, hits, the candidate loop
+# over voxel_tris) after the scene and, for Line Space kernels, linespace.h.
+TRACE_HEADERS = ("geometry.h", "scene.h", "trace.h")
+LS_TRACE_HEADERS = ("geometry.h", "scene.h", "linespace.h", "trace.h")
+# loop_probe = 2: the driver loop-limit probe of every traversal (cut_hit, shaders/common/trace.h).
 GRID_UNIFORMS = (Uniform("grid_origin", "float4"), Uniform("grid_inv_voxel", "float4"),
                  Uniform("grid_res", "int4"), Uniform("box_eps", "float"), Uniform("loop_probe", "uint"))
 # Per-ray work counters (iterations, candidate tests, Line Space lookups, clock) for profiling
 # builds only: the plain kernels are compiled without COUNT_WORK and never touch this buffer.
 WORK_BUFFER = Buf("work", "uint4", "w")
+
+
+def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers: tuple[Buf, ...],
+               uniforms: tuple[Uniform, ...], line_space: bool = False) -> KernelSpec:
+    """A traversal kernel: the scene, the structure's buffers and the rays bound; `headers` are
+    the structure's own, after TRACE_HEADERS (or LS_TRACE_HEADERS with LEAF_LINE_SPACE: its
+    cells may hold a Line Space)."""
+    common = LS_TRACE_HEADERS if line_space else TRACE_HEADERS
+    defines = (("LEAF_LINE_SPACE", "1"),) if line_space else ()
+    return KernelSpec(name, common + headers, body, SCENE_BUFFERS + structure_buffers + RAY_BUFFERS,
+                      uniforms, defines)

@@ -8,7 +8,7 @@ import numpy as np
 
 from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
                      start_failure_hint)
-from .kernels import SHADER_ROOT, KernelSpec, define_lines, has_lines, numbered, read_common
+from .kernels import SHADER_ROOT, KernelSpec, kernel_defines, numbered, read_common
 
 CL_TYPES = {"float": "float", "uint": "uint", "int": "int", "float4": "float4", "uint4": "uint4",
             "int4": "int4", "uint2": "uint2"}
@@ -32,7 +32,7 @@ def kernel_source(spec: KernelSpec) -> str:
         params.append(f"{CL_TYPES[type_name]} {name}")
         assigns.append(f"    c.{name} = {name};")
     return (
-        _prelude() + define_lines(spec.defines) + has_lines(spec)
+        _prelude() + kernel_defines(spec)
         + "typedef struct {\n" + "\n".join(fields) + "\n} Ctx;\n"
         + read_common(spec.headers)
         + f"\n__kernel void k_{spec.name}(" + ", ".join(params) + ") {\n"
@@ -57,6 +57,7 @@ def _numpy_scalar(type_name: str, value):
 class OpenCLDevice(Device):
     backend = "opencl"
     limit_name = "CL_DEVICE_MAX_MEM_ALLOC_SIZE"
+    line_space_test = "clip"  # PoCL: the clipper 2x faster than the 57-axis SAT (linespace.py)
 
     def __init__(self):
         import pyopencl as cl
@@ -187,8 +188,28 @@ class OpenCLDevice(Device):
         self._live.pop(id(buf.handle), None)
         buf.handle.release()
 
+    # --- device clock ----------------------------------------------------------------------
+    @property
+    def _is_nvidia(self) -> bool:
+        return "nvidia" in self.device.vendor.strip().lower()
+
+    def clock_defines(self):
+        """OpenCL C has no clock builtin: NVIDIA's %clock register by inline PTX (CLOCK_PTX,
+        shaders/common/trace.h); every other device (PoCL's CPU device) gets none."""
+        return (("USE_CLOCK", "1"), ("CLOCK_PTX", "1")) if self._is_nvidia else ()
+
+    def clock_info(self):
+        name = self.device.name.strip()
+        if self.clock_defines():
+            return {"available": True, "unit": "SM clock cycles", "source": "PTX %clock",
+                    "note": f"%clock register read by inline PTX on {name} (per-SM cycle counter, 32 bits)"}
+        why = ("PoCL's CPU device has no kernel-readable clock and OpenCL C has no clock builtin"
+               if "portable computing language" in self.device.platform.name.strip().lower()
+               else "OpenCL C has no clock builtin and only NVIDIA devices get one (inline PTX %clock)")
+        return {"available": False, "unit": None, "source": None, "note": f"no device clock on {name}: {why}"}
+
     # --- kernels ---------------------------------------------------------------------------
-    def kernel(self, spec: KernelSpec):
+    def compile(self, spec: KernelSpec):
         knl = self._programs.get(spec.key)
         if knl is None:
             src = kernel_source(spec)
@@ -214,7 +235,7 @@ class OpenCLDevice(Device):
         return args
 
     def _launch(self, spec, n_items, args):
-        knl = self.kernel(spec)
+        knl = self.compile(spec)
         local = spec.local_size
         global_size = ((n_items + local - 1) // local) * local
         try:
@@ -228,6 +249,13 @@ class OpenCLDevice(Device):
         if n_items <= 0:
             return None
         return self._launch(spec, n_items, self._args(spec, n_items, buffers, uniforms))
+
+    def compile_voxelizer(self, spec):
+        return self.compile(spec)
+
+    def voxelize(self, spec, n_tris, buffers, uniforms, resolution):
+        """The compute voxelizer: spec's body (grid.h: voxelize_kernel) once per triangle."""
+        self.dispatch(spec, n_tris, buffers, uniforms)
 
     def finish(self):
         self.queue.finish()

@@ -27,7 +27,7 @@ to DIR/.. in the same way. Ray sets that are not images (width 0, e.g. a .npz) a
 as the case's WxH when that holds exactly the rays, else in a near-square image, ray i at
 (i // W, i % W), padding NaN in the EXR and black in the PNGs.
 
-Clock: CLOCK_START()/CLOCK_ELAPSED() (preludes, common/scene.h). GLSL reads clock2x32ARB().x
+Clock: CLOCK_START()/CLOCK_ELAPSED() (preludes, common/trace.h). GLSL reads clock2x32ARB().x
 where the driver has GL_ARB_shader_clock (Mesa llvmpipe: nanoseconds, only the low 32 bits valid,
 8 SIMD lanes share one value, so the clock image is constant over runs of 8 rays; NVIDIA: shader
 clock cycles). OpenCL C has no clock builtin: NVIDIA devices read %clock by inline PTX, every other
@@ -56,32 +56,9 @@ COLORMAP = "inferno"
 
 # ---- clock ------------------------------------------------------------------------------------
 def clock_info(device) -> dict:
-    """What the clock field of the work counters holds on `device` (mirrors
-    backends.structures.base.clock_defines, which decides whether the kernels read a clock)."""
-    from lsbench.backends.structures.base import clock_defines
-
-    info = device.info()
-    name = info.get("device", "?")
-    defines = dict(clock_defines(device))
-    if info.get("backend") == "glsl":
-        if defines.get("USE_CLOCK"):
-            if "llvmpipe" in name.lower():
-                unit = "ns"
-                note = (f"GL_ARB_shader_clock on {name}: clock2x32ARB() ticks in nanoseconds (wall time), only "
-                        "the low 32 bits are valid, 8 SIMD lanes share one value (per-ray time of its 8-ray group)")
-            else:
-                unit = "shader clock ticks"
-                note = f"GL_ARB_shader_clock (clock2x32ARB().x, low 32 bits) on {name}; GPU cycles on NVIDIA"
-            return {"available": True, "unit": unit, "source": "clock2x32ARB", "note": note}
-        return {"available": False, "unit": None, "source": None,
-                "note": f"no device clock on {name}: the GL driver lacks GL_ARB_shader_clock"}
-    if defines.get("CLOCK_PTX"):
-        return {"available": True, "unit": "SM clock cycles", "source": "PTX %clock",
-                "note": f"%clock register read by inline PTX on {name} (per-SM cycle counter, 32 bits)"}
-    why = ("PoCL's CPU device has no kernel-readable clock and OpenCL C has no clock builtin"
-           if "portable computing language" in str(info.get("driver", "")).lower()
-           else "OpenCL C has no clock builtin and only NVIDIA devices get one (inline PTX %clock)")
-    return {"available": False, "unit": None, "source": None, "note": f"no device clock on {name}: {why}"}
+    """What the clock field of the work counters holds on `device`: Device.clock_info, beside the
+    Device.clock_defines that decide whether the kernels read a clock."""
+    return device.clock_info()
 
 
 # ---- layout -----------------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """The structure catalogue: one entry per structure, in display order (tables, charts, reports).
 
 Each entry's `recipe` has prepare(device) (compile what the build uses) and
-build(device, scene_buffers, n_tris, geometry, params) -> BuildResult; the build and traversal
-kernels of a structure are in shaders/common/<name>.h."""
+build(device, scene_buffers, n_tris, geometry, params) -> BuildResult (base.py), written against
+the Device interface only. A recipe's module docstring names its kernels' headers in
+shaders/common/: grid.h, grid_ls.h, octree.h with svo.h / esvo.h, octree_ls.h, linespace.h."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Plain data shared by every structure: grid geometry, build parameters, built structure, hits."""
+"""Plain data shared by every structure: grid geometry, build parameters, a recipe's build result,
+built structure, hits."""
 from __future__ import annotations
 
 import dataclasses
@@ -67,7 +68,7 @@ class GridGeometry:
             "grid_inv_voxel": as_float4(1.0 / np.asarray(self.voxel_size)),
             "grid_res": as_int4(self.resolution),
             "box_eps": BOX_EPS,
-            "loop_probe": 2,  # shaders/common/scene.h: cut_hit
+            "loop_probe": 2,  # shaders/common/scene.h: loops_intact
         }
 
 
@@ -78,6 +79,15 @@ class BuildParams:
     ls_min_candidates: int = 0  # build Line Spaces only in voxels with more candidates than this
     bounding_cube: bool = False  # grid over the bounding cube even where not needed (compare with octrees)
     options: dict = field(default_factory=dict)
+
+
+@dataclass
+class BuildResult:
+    """What a structure recipe's build(device, scene_buffers, n_tris, geometry, params) returns."""
+    buffers: dict[str, DeviceBuffer]  # the structure's own buffers (what memory_bytes counts)
+    uniforms: dict  # the trace kernel's uniforms
+    trace_spec: KernelSpec  # the closest-hit kernel of this build (its defines: depth, splits ...)
+    stats: dict = field(default_factory=dict)  # counts of the build (voxels, references, nodes, ...)
 
 
 @dataclass
@@ -102,9 +112,7 @@ class Built:
 
     def release(self) -> None:
         for b in list(self.buffers.values()) + list(self.scene_buffers.values()):
-            release = getattr(self.device, "release", None)
-            if release is not None:
-                release(b)
+            self.device.release(b)
 
 
 @dataclass
@@ -114,23 +122,10 @@ class Hits:
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
 
 
-def clock_defines(device: Device | None) -> tuple[tuple[str, str], ...]:
-    """Defines that give the profiling kernels a device clock (CLOCK_START()/CLOCK_ELAPSED(),
-    preludes + common/scene.h), only where the device has one: GL_ARB_shader_clock in GLSL
-    (glsl.py then adds the #extension line); NVIDIA's %clock register via inline PTX in OpenCL.
-    PoCL and other OpenCL devices get none: their clock field reads 0 (lsbench/profile/heatmaps.py says why)."""
-    if device is None:
-        return ()
-    info = device.info()
-    if info.get("backend") == "glsl" and info.get("shader_clock"):
-        return (("USE_CLOCK", "1"),)
-    if info.get("backend") == "opencl" and "nvidia" in str(info.get("vendor", "")).lower():
-        return (("USE_CLOCK", "1"), ("CLOCK_PTX", "1"))
-    return ()
-
-
 def with_work_counters(spec: KernelSpec, device: Device | None = None) -> KernelSpec:
-    """The profiling variant of a traversal kernel: COUNT_WORK compiled in, a work buffer added,
-    and the device clock where `device` has one (without a device the clock field stays 0)."""
-    return dataclasses.replace(spec, name=spec.name + "_work", buffers=spec.buffers + (WORK_BUFFER,),
-                               defines=spec.defines + (("COUNT_WORK", "1"),) + clock_defines(device))
+    """The profiling variant of a traversal kernel (the same KERNEL_<name>): COUNT_WORK compiled
+    in, a work buffer added, and the device clock where `device` has one (Device.clock_defines;
+    without a device the clock field stays 0)."""
+    clock = device.clock_defines() if device is not None else ()
+    return dataclasses.replace(spec, buffers=spec.buffers + (WORK_BUFFER,),
+                               defines=spec.defines + (("COUNT_WORK", "1"),) + clock)

@@ -1,7 +1,9 @@
 """`grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (thesis 3.3.3,
 5.1, Algorithm 2). Build: the grid's voxel lists (grid.build_voxel_lists), a compaction of the
 voxels that get a Line Space (flags -> scan: voxel -> Line Space index), their cells (voxel box +
-list range), then linespace.build_linespaces. Trace: shaders/common/grid_ls.h.
+list range), then linespace.build_linespaces. Kernels: shaders/common/grid_ls.h (the build steps
+and the voxel's shaft lookup) on linespace.h; the trace is grid.h's DDA walk with that lookup
+(LEAF_LINE_SPACE).
 
 BuildParams.ls_n = N (patches per face edge, >= 1; 0 is taken as 1 here, grid-ls always has a
 Line Space). BuildParams.ls_min_candidates = K: only voxels with more than K candidates get a
@@ -10,12 +12,11 @@ memory saved)."""
 from __future__ import annotations
 
 from ..device import Device
-from ..kernels import GRID_UNIFORMS, RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from ..kernels import Buf, KernelSpec, Uniform, trace_spec
 from . import grid, linespace
-from .base import BuildParams, GridGeometry
+from .base import BuildParams, BuildResult, GridGeometry
 
-GLS_HEADERS = linespace.LS_HEADERS + ("grid_ls.h",)
-GLS_BUILD_HEADERS = linespace.LS_HEADERS_NO_SCENE + ("grid_ls.h",)
+GLS_BUILD_HEADERS = ("geometry.h", "grid_ls.h")
 
 GLS_FLAGS = KernelSpec(
     "gls_flags", GLS_BUILD_HEADERS, "gls_flags_kernel",
@@ -26,23 +27,20 @@ GLS_CELLS = KernelSpec(
     (Buf("voxel_offsets", "uint", "r"), Buf("ls_ids", "uint", "r"), Buf("ls_cell_boxes", "float4", "w"),
      Buf("ls_cell_ranges", "uint", "w")),
     linespace.LS_UNIFORMS)
-TRACE_GRID_LS = KernelSpec(
-    "trace_grid_ls", GLS_HEADERS, "trace_grid_ls_kernel",
-    SCENE_BUFFERS + (Buf("voxel_offsets", "uint", "r"), Buf("voxel_tris", "uint", "r"),
-                     Buf("ls_ids", "uint", "r"), Buf("ls_shaft_offsets", "uint", "r"),
-                     Buf("ls_shaft_tris", "uint", "r")) + RAY_BUFFERS,
-    linespace.LS_UNIFORMS)
+TRACE_GRID_LS = trace_spec(
+    "trace_grid_ls", ("grid.h", "grid_ls.h"), "trace_grid_kernel",
+    grid.VOXEL_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS, line_space=True)
 
 
 def prepare(device: Device) -> None:
     grid.prepare(device)
     linespace.prepare(device)
     for spec in (GLS_FLAGS, GLS_CELLS):
-        device.program(spec) if device.backend == "glsl" else device.kernel(spec)
+        device.compile(spec)
 
 
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
-          params: BuildParams):
+          params: BuildParams) -> BuildResult:
     n = linespace.check_n(params.ls_n or 1)
     k = linespace.check_min_candidates(params.ls_min_candidates)
     buffers, stats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
@@ -81,7 +79,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         "linespace_skipped_voxels": non_empty - n_cells,
         "bytes": {name: b.used for name, b in buffers.items()},
     })
-    return buffers, u, ls.trace_spec(TRACE_GRID_LS), stats
+    return BuildResult(buffers, u, ls.trace_spec(TRACE_GRID_LS), stats)
 
 
 def _non_empty_voxels(device: Device, voxel_offsets, n_vox: int, u: dict) -> int:

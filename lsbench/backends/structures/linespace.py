@@ -46,9 +46,14 @@ from ..device import Device, DeviceBuffer, DeviceLimitError
 from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
 from .base import GridGeometry
 
-LS_HEADERS = ("geometry.h", "scene.h", "grid.h", "linespace.h")
-# Kernels that bind no scene buffers leave scene.h out (it reads vertices/faces).
-LS_HEADERS_NO_SCENE = ("geometry.h", "grid.h", "linespace.h")
+# Kernels: shaders/common/linespace.h. Kernels that bind no scene buffers leave scene.h out (it
+# reads vertices/faces).
+LS_HEADERS = ("geometry.h", "scene.h", "linespace.h")
+LS_HEADERS_NO_SCENE = ("geometry.h", "linespace.h")
+# What a trace kernel binds to read the Line Spaces of its cells (trace.h: cell_line_space,
+# shaft_list): the cell -> Line Space index and the shafts' candidate lists.
+LS_TRACE_BUFFERS = (Buf("ls_ids", "uint", "r"), Buf("ls_shaft_offsets", "uint", "r"),
+                    Buf("ls_shaft_tris", "uint", "r"))
 LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "uint"),
                                Uniform("ls_eps", "float"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
@@ -62,8 +67,7 @@ UINT32_MAX = 2**32 - 1
 LS_MAX_CHUNKS = 4
 
 LS_PLANES = KernelSpec(
-    "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS,
-    defines=(("LS_PLANES_KERNEL", "1"),))
+    "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
 _CELL_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_cell_boxes", "float4", "r"),
                  Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"))
 # The count pass writes each shaft's count where its offset will be; the scan turns them into
@@ -75,7 +79,7 @@ LS_COUNT = KernelSpec(
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
     SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
-    LS_UNIFORMS, defines=(("LS_FILL", "1"),))
+    LS_UNIFORMS)
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
     (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
@@ -89,14 +93,12 @@ BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK, LS_CARRY)
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
 # equivalent separating-axis test. Both are conservative with the same margin and give the same
-# candidates up to that margin; each backend uses the one its driver runs faster: llvmpipe spends
-# 10x more time on the clipper's variable-indexed polygon arrays, PoCL runs the clipper about 2x
-# faster than the 57-axis SAT. Override with LSBENCH_LS_TEST=clip|sat.
-EXACT_TEST = {"glsl": "sat", "opencl": "clip"}
-
-
+# candidates up to that margin; each device uses the one its driver runs faster
+# (Device.line_space_test: llvmpipe spends 10x more time on the clipper's variable-indexed polygon
+# arrays, PoCL runs the clipper about 2x faster than the 57-axis SAT). Override with
+# LSBENCH_LS_TEST=clip|sat.
 def exact_test(device: Device) -> str:
-    choice = os.environ.get("LSBENCH_LS_TEST") or EXACT_TEST.get(device.backend, "sat")
+    choice = os.environ.get("LSBENCH_LS_TEST") or device.line_space_test
     if choice not in ("clip", "sat"):
         raise ValueError(f"LSBENCH_LS_TEST must be 'clip' or 'sat', got {choice!r}")
     return choice
@@ -189,8 +191,7 @@ def split_array(device: Device, base: str, macro: str, entries: int, limit: int 
     if chunks > LS_MAX_CHUNKS:
         raise DeviceLimitError(
             f"buffer '{base}' needs {4 * entries / 2**20:.1f} MiB: more than {LS_MAX_CHUNKS} "
-            f"buffers of the {device.backend} driver's per-buffer limit of {limit / 2**20:.0f} MiB "
-            f"({device.limit_name})")
+            f"buffers of the driver's per-buffer limit of {limit / 2**20:.0f} MiB ({device.limit_name})")
     return SplitArray(base, macro, entries, chunks, shift)
 
 
@@ -214,8 +215,7 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
 
 def prepare(device: Device) -> None:
     for spec in BUILD_SPECS:
-        spec = _with_test(device, spec)
-        device.program(spec) if device.backend == "glsl" else device.kernel(spec)
+        device.compile(_with_test(device, spec))
 
 
 def check_min_candidates(k: int) -> int:

@@ -7,13 +7,14 @@ Build, all on the device:
 2. while its bit pyramid exists: flag the leaves that get a Line Space (more than K =
    ls_min_candidates candidates), exclusive scan -> ls_ids (leaf -> Line Space index), and write
    each such leaf's cell (its voxel's box in grid space, its candidate range in voxel_tris)
-   (shaders/common/octree_ls.h);
+   (shaders/common/octree_ls.h, on octree.h);
 3. the Line Spaces of those cells: linespace.build_linespaces (count -> scan -> fill, the same
    code as grid-ls).
 
-Trace: the svo / esvo traversal unchanged; at every leaf oct_test_leaf (shaders/common/svo.h)
-looks up the shaft of the ray's chord through the leaf from its entry and exit face and patch
-(linespace.h: ls_chord_shaft) and tests only that shaft's candidates.
+Trace: the svo / esvo traversal (svo.h, esvo.h) unchanged, compiled with LEAF_LINE_SPACE: at
+every leaf oct_test_leaf (octree.h) asks ols_leaf_shaft (octree_ls.h) for the shaft of the ray's
+chord through the leaf, found from its entry and exit face and patch (linespace.h: ls_chord), and
+tests only that shaft's candidates.
 
 Our octrees keep leaves only on the last level (thesis 5.2.1), so the leaves are the grid's
 non-empty voxels; what the octree adds over grid-ls is the hierarchical skipping of empty space.
@@ -23,11 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..device import Device, DeviceBuffer
-from ..kernels import RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
+from ..kernels import Buf, KernelSpec, Uniform, trace_spec
 from . import esvo, linespace, svo
-from .base import BuildParams, GridGeometry
+from .base import BuildParams, BuildResult, GridGeometry
 
-OLS_BUILD_HEADERS = ("geometry.h", "svo.h", "octree_ls.h")
+OLS_BUILD_HEADERS = svo.BUILD_HEADERS + ("octree_ls.h",)
 OLS_UNIFORMS = svo.OCT_UNIFORMS + (Uniform("ls_min_count", "uint"),)
 LEAF_FLAGS = KernelSpec(
     "oct_ls_flags", OLS_BUILD_HEADERS, "oct_ls_flags_kernel",
@@ -38,17 +39,16 @@ LEAF_CELLS = KernelSpec(
      Buf("leaves", "uint", "r"), Buf("ls_ids", "uint", "r"), Buf("ls_cell_boxes", "float4", "w"),
      Buf("ls_cell_ranges", "uint", "w")), OLS_UNIFORMS)
 
-# Traversal: the octree's own kernel with the Line Space buffers bound (HAS_ls_shaft_tris turns
-# the lookup in oct_test_leaf on); linespace.h before svo.h for ls_chord_shaft.
-_TRACE_HEADERS = ("geometry.h", "scene.h", "linespace.h", "svo.h")
-_LS_BUFFERS = (Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"), Buf("ls_ids", "uint", "r"),
-               Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "r"))
-TRACE_SVO_LS = KernelSpec(
-    "trace_svo_ls", _TRACE_HEADERS, "trace_svo_kernel",
-    SCENE_BUFFERS + (Buf("svo_nodes", "uint", "r"),) + _LS_BUFFERS + RAY_BUFFERS, linespace.LS_UNIFORMS)
-TRACE_ESVO_LS = KernelSpec(
-    "trace_esvo_ls", _TRACE_HEADERS + ("esvo.h",), "trace_esvo_kernel",
-    SCENE_BUFFERS + (Buf("esvo_nodes", "uint", "r"),) + _LS_BUFFERS + RAY_BUFFERS, linespace.LS_UNIFORMS)
+# Traversal: the octree's own kernel with LEAF_LINE_SPACE (the leaf lookup of octree_ls.h) and the
+# Line Space buffers bound.
+TRACE_SVO_LS = trace_spec(
+    "trace_svo_ls", ("octree.h", "octree_ls.h", "svo.h"), "trace_svo_kernel",
+    (Buf("svo_nodes", "uint", "r"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
+    line_space=True)
+TRACE_ESVO_LS = trace_spec(
+    "trace_esvo_ls", ("octree.h", "octree_ls.h", "esvo.h"), "trace_esvo_kernel",
+    (Buf("esvo_nodes", "uint", "r"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
+    line_space=True)
 
 
 @dataclass(frozen=True)
@@ -61,10 +61,10 @@ class LineSpaceOctree:
         (svo if self.layout == "svo" else esvo).prepare(device)
         linespace.prepare(device)
         for spec in (LEAF_FLAGS, LEAF_CELLS):
-            svo._compile(device, spec)
+            device.compile(spec)
 
     def build(self, device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
-              params: BuildParams):
+              params: BuildParams) -> BuildResult:
         svo.octree_depth(params.resolution)  # ValueError before any work
         n = linespace.check_n(params.ls_n or 1)  # an LS structure always has a Line Space
         k = linespace.check_min_candidates(params.ls_min_candidates)
@@ -81,7 +81,7 @@ class LineSpaceOctree:
             n_cells = made["n_cells"]
             made["ls_cell_boxes"] = device.alloc("ls_cell_boxes", 32 * max(n_cells, 1), zero=False)
             made["ls_cell_ranges"] = device.alloc("ls_cell_ranges", 8 * max(n_cells, 1), zero=False)
-            device.dispatch(LEAF_CELLS, pyramid["leaf_words"],
+            device.dispatch(LEAF_CELLS, pyramid["leaf_cells"],
                             {"level_words": pyramid["level_words"], "oct_bits": pyramid["oct_bits"],
                              "oct_ranks": pyramid["oct_ranks"], "leaves": leaves, "ls_ids": made["ls_ids"],
                              "ls_cell_boxes": made["ls_cell_boxes"],
@@ -105,7 +105,7 @@ class LineSpaceOctree:
         buffers["ls_ids"] = made.pop("ls_ids")
         buffers.update(ls.buffers)
         # The leaves' plain lists stay even when every leaf has a Line Space: a leaf that the walk
-        # meets off its chord tests them instead of a shaft (oct_test_leaf in svo.h); they cost
+        # meets off its chord tests them instead of a shaft (ols_leaf_shaft in octree_ls.h); they cost
         # 4 bytes per reference, a small part of the Line Spaces.
         stats.update(ls.stats)
         stats.update(linespace.selection_stats(ls, stats["leaves"], k))
@@ -115,7 +115,7 @@ class LineSpaceOctree:
             "bytes": {name: b.used for name, b in buffers.items()},
         })
         uniforms = linespace.uniforms(geometry, n)
-        return buffers, uniforms, ls.trace_spec(self.trace.with_defines(OCT_DEPTH=stats["depth"])), stats
+        return BuildResult(buffers, uniforms, ls.trace_spec(self.trace.with_defines(OCT_DEPTH=stats["depth"])), stats)
 
 
 svo_ls = LineSpaceOctree("svo", TRACE_SVO_LS)

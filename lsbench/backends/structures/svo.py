@@ -1,5 +1,7 @@
 """`svo`: sparse voxel octree with a node pool of 8 child indices per node, leaves only on the
 last level, a candidate list per leaf, stack traversal (thesis 3.3.2, Algorithm 1).
+Kernels: shaders/common/octree.h (the build shared with `esvo`, the leaf handling) and svo.h
+(the node-pool nodes and their traversal), on scene.h and trace.h.
 
 The build (shared with `esvo`, see `build_octree`) runs on the device from the voxel lists of
 `grid` (same conservative voxelization):
@@ -14,8 +16,9 @@ The build (shared with `esvo`, see `build_octree`) runs on the device from the v
    The thesis (3.3.2) hands out child blocks with an atomic counter; the prefix sum gives the
    same sizes and contiguous child blocks, but in a layout that does not depend on thread
    timing (Listing 2 computes the same offsets serially, one thread per level).
-3. create: every internal node writes its children (svo: 8 uints; esvo: one descriptor).
-4. link leaves: every leaf gets (first, count) of its voxel's candidates in voxel_tris; the
+3. create: every internal node writes its children (svo: 8 uints; esvo: one descriptor), one
+   work item per cell of the internal levels.
+4. link leaves: one work item per cell of the leaf level; every leaf gets (first, count) of its voxel's candidates in voxel_tris; the
    dense voxel_offsets (4 bytes per voxel) is released after the build.
 
 Temporary buffers: the pyramid and its ranks, R^3/32 * 8/7 words each (1 bit per voxel).
@@ -25,12 +28,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..device import Device, DeviceBuffer, DeviceLimitError
-from ..kernels import GRID_UNIFORMS, RAY_BUFFERS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
-from .base import BuildParams, GridGeometry
+from ..kernels import GRID_UNIFORMS, Buf, KernelSpec, Uniform, trace_spec
+from .base import BuildParams, BuildResult, GridGeometry
 from . import grid
 
-OCT_HEADERS = ("geometry.h", "scene.h", "svo.h")  # traversal
-BUILD_HEADERS = ("geometry.h", "svo.h")  # build kernels bind no scene buffers
+BUILD_HEADERS = ("geometry.h", "octree.h")  # build kernels bind no scene buffers
 OCT_UNIFORMS = GRID_UNIFORMS + (Uniform("oct_depth", "uint"), Uniform("oct_level", "uint"))
 MAX_DEPTH = 10  # Morton codes of 3 * depth bits must fit a uint
 
@@ -49,19 +51,20 @@ LINK_LEAVES = KernelSpec("oct_leaves", BUILD_HEADERS, "oct_leaves_kernel",
                           Buf("voxel_offsets", "uint", "r"), Buf("leaves", "uint", "w")), OCT_UNIFORMS)
 
 
-def create_spec(nodes_buffer: str) -> KernelSpec:
-    return KernelSpec(f"oct_create_{nodes_buffer}", BUILD_HEADERS, "oct_create_kernel",
+def create_spec(layout: str) -> KernelSpec:
+    """Build step 3 in a layout: <layout>_create_kernel of shaders/common/<layout>.h."""
+    return KernelSpec(f"{layout}_create", BUILD_HEADERS + (f"{layout}.h",), f"{layout}_create_kernel",
                       (_LW, Buf("oct_bits", "uint", "r"), Buf("oct_ranks", "uint", "r"),
-                       Buf(nodes_buffer, "uint", "w")), OCT_UNIFORMS)
+                       Buf(f"{layout}_nodes", "uint", "w")), OCT_UNIFORMS)
 
 
-CREATE_SVO = create_spec("svo_nodes")
-CREATE_ESVO = create_spec("esvo_nodes")  # 32-bit descriptors of `esvo` (esvo.py, esvo.h)
+CREATE_SVO = create_spec("svo")
+CREATE_ESVO = create_spec("esvo")  # 32-bit descriptors of `esvo` (esvo.py, esvo.h)
 
-TRACE_SVO = KernelSpec(
-    "trace_svo", OCT_HEADERS, "trace_svo_kernel",
-    SCENE_BUFFERS + (Buf("svo_nodes", "uint", "r"), Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"))
-    + RAY_BUFFERS, GRID_UNIFORMS)
+# What every octree traversal reads: its nodes, then the leaves and their candidate lists.
+LEAF_LISTS = (Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"))
+TRACE_SVO = trace_spec("trace_svo", ("octree.h", "svo.h"), "trace_svo_kernel",
+                       (Buf("svo_nodes", "uint", "r"),) + LEAF_LISTS, GRID_UNIFORMS)
 
 # Per layout: nodes buffer name, bytes per internal node, create kernel.
 LAYOUTS = {"svo": ("svo_nodes", 32, CREATE_SVO), "esvo": ("esvo_nodes", 4, CREATE_ESVO)}
@@ -95,14 +98,7 @@ def prepare(device: Device) -> None:
     first launch, before any timed one)."""
     grid.prepare(device)
     for spec in (FLAG_LEAVES, FLAG_UP, POPCOUNT, LEVEL_COUNTS, LINK_LEAVES, CREATE_SVO):
-        _compile(device, spec)
-
-
-def _compile(device: Device, spec: KernelSpec) -> None:
-    if device.backend == "glsl":
-        device.program(spec)
-    else:
-        device.kernel(spec)
+        device.compile(spec)
 
 
 def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
@@ -111,8 +107,9 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
     structure's buffers (nodes, leaves, voxel_tris) and stats.
 
     leaf_hook(pyramid, leaves, n_leaves): called once the leaves are linked, while the bit
-    pyramid still exists (pyramid: dict with the level_words, oct_bits and oct_ranks buffers and
-    the build's uniforms); svo-ls / esvo-ls find their leaves' voxels there (octree_ls.py)."""
+    pyramid still exists (pyramid: dict with the level_words, oct_bits and oct_ranks buffers,
+    the build's uniforms and leaf_cells, the work items of a kernel per leaf-level cell);
+    svo-ls / esvo-ls find their leaves' voxels there (octree_ls.py)."""
     depth = octree_depth(geometry.resolution)
     nodes_name, node_bytes, create = LAYOUTS[layout]
     vox, vstats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
@@ -161,15 +158,17 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
         leaves = device.alloc("leaves", 8 * max(n_leaves, 1), zero=False)
         made.append(leaves)
         leaves.used_bytes = 8 * n_leaves
-        device.dispatch(create, int(lw[depth]),
+        # One work item per pyramid bit (cell) of levels 0..depth-1, then of the leaf level.
+        device.dispatch(create, 32 * int(lw[depth]),
                         {"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks, nodes_name: nodes},
                         uniforms)
-        device.dispatch(LINK_LEAVES, int(lw[depth + 1] - lw[depth]),
+        leaf_cells = 32 * int(lw[depth + 1] - lw[depth])
+        device.dispatch(LINK_LEAVES, leaf_cells,
                         {"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks,
                          "voxel_offsets": offsets, "leaves": leaves}, uniforms)
         if leaf_hook is not None:
             leaf_hook({"level_words": lw_buf, "oct_bits": bits, "oct_ranks": ranks, "uniforms": uniforms,
-                       "leaf_words": int(lw[depth + 1] - lw[depth])}, leaves, n_leaves)
+                       "leaf_cells": leaf_cells}, leaves, n_leaves)
         device.finish()
     except BaseException:
         for b in made + [tris]:
@@ -194,8 +193,8 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
 
 
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
-          params: BuildParams):
+          params: BuildParams) -> BuildResult:
     octree_depth(params.resolution)  # ValueError before any work
     buffers, stats = build_octree(device, scene_buffers, n_tris, geometry, "svo")
     spec = TRACE_SVO.with_defines(OCT_DEPTH=stats["depth"])
-    return buffers, geometry.uniforms(), spec, stats
+    return BuildResult(buffers, geometry.uniforms(), spec, stats)

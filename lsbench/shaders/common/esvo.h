@@ -3,7 +3,9 @@
 // child above an 8-bit valid mask (Listing 2; no far bit, no contours, no leaf mask: leaves
 // exist only on the last level, so the level says what a child is). The children of a node
 // are contiguous in slot order, child k at pointer + popcount(mask below k); on the last
-// internal level the pointer indexes `leaves`. Needs geometry.h, scene.h and svo.h.
+// internal level the pointer indexes `leaves`. The descriptors are written by the shared build of
+// octree.h (esvo_create_kernel below). Needs geometry.h and octree.h; the traversal also scene.h
+// and trace.h before octree.h (esvo-ls: linespace.h too, octree_ls.h after).
 //
 // Traversal after Laine & Karras, "Efficient Sparse Voxel Octrees" (I3D 2010, appendix code),
 // thesis 5.2.2 (Fig. 16-18): the bounding cube is mapped to [1,2]^3, axes are mirrored so
@@ -14,7 +16,17 @@
 
 #define ESVO_SMAX 23
 
-#if defined(HAS_rays) && defined(HAS_esvo_nodes)
+#ifdef KERNEL_esvo_create
+// ---- Build 5 (octree.h) in the descriptor layout -------------------------------------------
+// Listing 2: 24-bit child pointer above the 8-bit valid mask (the build checks that every
+// pointer fits in 24 bits before it gets here).
+INLINE void esvo_create_kernel(CTX_PARAM uint gid) {
+    OctNode n = oct_internal_node(CTX_ARG gid);
+    if (n.flagged != 0u) V(esvo_nodes)[n.id] = (n.first << 8) | n.mask;
+}
+#endif
+
+#if defined(KERNEL_trace_esvo) || defined(KERNEL_trace_esvo_ls)
 // Voxel coordinates of the leaf whose mirrored min corner is `pos` (edge `edge`, octree space
 // [1,2]^3): undo the mirroring (x -> 3 - x turns [pos, pos + edge] into [3 - pos - edge, 3 - pos]),
 // then scale to the grid. Every value is an exact binary fraction; + 0.5 only guards the floor.
@@ -26,12 +38,10 @@ INLINE int3 esvo_leaf_cell(float3 pos, float edge, uint mirror, float res) {
                      I32(floor((z - 1.0f) * res + 0.5f)));
 }
 
-INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
-#ifdef COUNT_WORK
-    uint clock0 = CLOCK_START();
-#endif
-    Hit best = no_hit(tmax);
-    WRay wr = make_wray(o, d);
+INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
+    Trace tr = trace_start(ray);
+    float3 o = ray.o;
+    float3 d = ray.d;
     GridRay gr = make_grid_ray(CTX_ARG o, d);  // esvo-ls' Line Space lookup only
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
     // divided by the cube's edge, shifted by one; the direction divided by the edge and
@@ -63,12 +73,9 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
     if (dd.z > 0.0f) { mirror ^= 4u; tz_bias = 3.0f * tz_coef - tz_bias; }
     float t_min = max(max(2.0f * tx_coef - tx_bias, 2.0f * ty_coef - ty_bias), 2.0f * tz_coef - tz_bias);
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
-    t_min = max(t_min, tmin * dlen);
-    t_max = min(t_max, tmax * dlen);
+    t_min = max(t_min, ray.tmin * dlen);
+    t_max = min(t_max, ray.tmax * dlen);
     float t_end = t_max / dlen;  // where the ray leaves the cube (or tmax), world units
-    uint iterations = 0u;
-    uint tests = 0u;
-    uint lookups = 0u;
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
         // one per level above the leaves, "sized to depth".
@@ -86,7 +93,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
         if (1.5f * ty_coef - ty_bias > t_min) { idx ^= 2u; pos.y = 1.5f; }
         if (1.5f * tz_coef - tz_bias > t_min) { idx ^= 4u; pos.z = 1.5f; }
         while (scale < ESVO_SMAX) {
-            iterations += 1u;
+            tr.iterations += 1u;
             if (desc == 0u) desc = V(esvo_nodes)[parent];
             float tx_corner = pos.x * tx_coef - tx_bias;
             float ty_corner = pos.y * ty_coef - ty_bias;
@@ -104,13 +111,9 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
                     if (scale == leaf_scale) {
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;
-                        LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
-                                                      make_float2(t_min / dlen, t_exit),
-                                                      oct_accept(t_exit, t_end, voxel_t), tmin, best);
-                        best = lr.best;
-                        tests += lr.tests;
-                        lookups += lr.lookups;
-                        if (best.prim >= 0 && best.t <= t_exit) break;
+                        tr = oct_test_leaf(CTX_ARG tr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
+                                           make_float2(t_min / dlen, t_exit), oct_accept(t_exit, t_end, voxel_t));
+                        if (trace_done(tr, t_exit) != 0) break;
                     } else {
                         // PUSH: remember the parent unless the ray leaves it together with
                         // this child (then no POP can land here).
@@ -164,14 +167,10 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
             }
         }
     }
-#ifdef COUNT_WORK
-    V(work)[ray] = make_uint4(iterations, tests, lookups, CLOCK_ELAPSED(clock0));
-#endif
-    return cut_hit(CTX_ARG best);
+    return trace_finish(CTX_ARG tr, id);
 }
 
 INLINE void trace_esvo_kernel(CTX_PARAM uint ray) {
-    Ray r = load_ray(CTX_ARG ray);
-    store_hit(CTX_ARG ray, trace_esvo(CTX_ARG r.o, r.d, r.tmin, r.tmax, ray));
+    store_hit(CTX_ARG ray, trace_esvo(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
 #endif  // esvo traversal

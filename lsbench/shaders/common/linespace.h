@@ -1,6 +1,6 @@
 // Candidate-list Line Space (thesis 3.3.3, Listing 1; Keul, Mueller, Lemke 2016), written once for
 // every structure whose cells get a Line Space (grid-ls voxels, svo-ls / esvo-ls octree leaves).
-// Needs geometry.h, scene.h and grid.h (to_grid: cells are boxes in grid space).
+// Needs geometry.h; the count and fill kernels also scene.h (cells are boxes in grid space).
 //
 // A cell's box is mapped to the unit cube ("cell-local" coordinates). Each of its 6 faces carries
 // an N x N patch grid. Face f = 2 * axis + side (side 0: coordinate 0, side 1: coordinate 1);
@@ -68,7 +68,7 @@ INLINE uint ls_shaft_id(uint n, int face_s, float2 uv_s, int face_e, float2 uv_e
 
 // The ray's chord through the unit cell with min corner `cell` (grid space) and its shaft, for a
 // traversal that meets the cell on its own (svo-ls / esvo-ls leaves, Algorithm 3: entry and exit
-// face and patch computed per leaf; grid-ls carries the exit over to the next voxel instead).
+// face and patch computed per leaf; grid-ls takes them from the grid walk's step instead).
 // The chord is the ray's line through the cell, also when the origin lies inside: the shaft of
 // the whole chord holds the part the ray covers. og, dg: ray in grid space; inv = 1 / dg with
 // safe_rcp (an axis the ray does not move along is never an entry or exit axis).
@@ -131,7 +131,7 @@ INLINE float ls_plane_dist(float4 pl, float3 p) {
     return dot(pl.xyz, p) + pl.w;
 }
 
-#ifdef LS_PLANES_KERNEL
+#ifdef KERNEL_ls_planes
 // ---- Shaft volumes --------------------------------------------------------------------------
 // The shaft volume is the convex hull of its two patches (every segment from a point of one patch
 // to a point of the other lies in it, and a ray through both patches runs exactly along such a
@@ -184,7 +184,7 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 }
 #endif  // shaft volumes
 
-#if defined(HAS_ls_cell_ranges) && defined(HAS_ls_planes)
+#if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
@@ -277,7 +277,7 @@ INLINE int ls_sat_meets(uint n, LsShaft sh, float3 a, float3 b, float3 c, float 
     return 1;
 }
 
-// ---- Build: count pass (LS_FILL undefined) and fill pass, one work item per (cell, shaft) ----
+// ---- Build: count pass (ls_count) and fill pass (ls_fill), one work item per (cell, shaft) ----
 // Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
 // cell into ls_cell_tris). A work item walks its cell's candidates in list order, so the fill
 // writes each shaft's range sequentially: no atomics, deterministic order.
@@ -301,7 +301,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p5 = V(ls_planes)[pb + 5u];
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
-#ifdef LS_FILL
+#ifdef KERNEL_ls_fill
     uint first = LS_OFFSET(gid);
 #endif
     uint count = 0u;
@@ -324,13 +324,13 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         else meets = ls_sat_meets(V(ls_n), sh, a, b, c, eps);
 #endif
         if (meets != 0) {
-#ifdef LS_FILL
+#ifdef KERNEL_ls_fill
             LS_CANDIDATE_STORE(first + count, tri);
 #endif
             count += 1u;
         }
     }
-#ifndef LS_FILL
+#ifndef KERNEL_ls_fill
     LS_OFFSET_STORE(gid, count);  // the count, until the scan makes it the offset
     if (count > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
@@ -338,7 +338,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 }
 #endif  // triangle / shaft test and build
 
-#ifdef HAS_ls_check_flag
+#ifdef KERNEL_ls_check
 // ---- 32-bit overflow check of the shaft offsets ---------------------------------------------
 // Each shaft adds fewer than 2^32 candidates, so a total past 2^32 wraps the 32-bit prefix sum
 // and shows as a decrease somewhere; flag it instead of building a truncated list (thesis 6.3).
@@ -347,7 +347,7 @@ INLINE void ls_check_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#ifdef HAS_ls_carry_chunk
+#ifdef KERNEL_ls_carry
 // ---- Scan of a split offset array: add the total of the chunks before this one --------------
 INLINE void ls_carry_kernel(CTX_PARAM uint gid) {
     V(ls_carry_chunk)[gid] += V(ls_carry);

@@ -41,7 +41,7 @@
 // Device clock for the profiling counters (COUNT_WORK builds; thesis 6.3, Fig. 20b):
 // `uint c0 = CLOCK_START(); ... CLOCK_ELAPSED(c0)` gives uint ticks, a 32-bit difference that
 // stays right across one wrap of the low word. The tick source CLOCK_NOW() is picked in
-// common/scene.h, after the kernel's defines: clock2x32ARB().x where USE_CLOCK is set (the
+// common/trace.h, after the kernel's defines: clock2x32ARB().x where USE_CLOCK is set (the
 // driver has GL_ARB_shader_clock; llvmpipe: nanoseconds, 8 lanes share a value), else 0.
 #define CLOCK_START() CLOCK_NOW()
 #define CLOCK_ELAPSED(start) (CLOCK_NOW() - (start))

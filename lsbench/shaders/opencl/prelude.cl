@@ -27,7 +27,7 @@
 #define LANG_OPENCL 1
 // Device clock for the profiling counters (COUNT_WORK builds): `uint c0 = CLOCK_START(); ...
 // CLOCK_ELAPSED(c0)` gives uint ticks (32-bit difference). OpenCL C has no clock builtin; the
-// tick source CLOCK_NOW() is picked in common/scene.h, after the kernel's defines: NVIDIA's
+// tick source CLOCK_NOW() is picked in common/trace.h, after the kernel's defines: NVIDIA's
 // %clock register through inline PTX where CLOCK_PTX is set (vendor NVIDIA), else 0 (PoCL's
 // CPU device has no device clock).
 #define CLOCK_START() CLOCK_NOW()

@@ -1,0 +1,173 @@
+// What every traversal shares (thesis 3.3: all structures answer the same closest-hit query):
+// rays and hits, the closest-hit rule, the work counters of profiling builds, the ray in grid
+// space, and the one loop that tests a cell's candidate list, whatever the cell (grid voxel,
+// grid-ls voxel, octree leaf) and wherever its list lives (voxel_tris or a Line Space shaft).
+// Needs geometry.h, scene.h and, for LEAF_LINE_SPACE kernels, linespace.h.
+//
+// Buffers: rays (float4 pairs: origin.xyz + tmin, direction.xyz + tmax), hit_prim (int, -1 =
+// miss), hit_t (float), voxel_tris (uint: the cells' plain candidate lists); work (uint4 per ray)
+// in COUNT_WORK builds. Feature defines (set by the KernelSpec): LEAF_LINE_SPACE (cells may hold
+// a Line Space: svo-ls, esvo-ls, grid-ls), COUNT_WORK (profiling counters).
+
+STRUCT(Ray) { float3 o; float tmin; float3 d; float tmax; };
+
+INLINE Ray load_ray(CTX_PARAM uint ray) {
+    float4 o = V(rays)[2u * ray];
+    float4 d = V(rays)[2u * ray + 1u];
+    Ray r;
+    r.o = o.xyz;
+    r.tmin = o.w;
+    r.d = d.xyz;
+    r.tmax = d.w;
+    return r;
+}
+
+STRUCT(Hit) { float t; int prim; };
+
+INLINE Hit no_hit(float tmax) { Hit h; h.t = tmax; h.prim = -1; return h; }
+
+INLINE void store_hit(CTX_PARAM uint ray, Hit h) {
+    V(hit_prim)[ray] = h.prim;
+    V(hit_t)[ray] = h.prim >= 0 ? h.t : INF_F;
+}
+
+// Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
+// gives the same ids whatever order the candidates arrive in (fill order is not deterministic).
+INLINE Hit closer(Hit best, float t, int prim, float tmin) {
+    if (t >= tmin && (t < best.t || (t == best.t && (best.prim < 0 || prim < best.prim)))) {
+        best.t = t;
+        best.prim = prim;
+    }
+    return best;
+}
+
+// Hit id of a ray whose loops the driver cut short (the probe of scene.h); backends.trace fails
+// the case naming the limit.
+#define LOOP_CUT_PRIM -2
+INLINE Hit cut_hit(CTX_PARAM Hit best) {
+    if (loops_intact(V(loop_probe)) == 0) best.prim = LOOP_CUT_PRIM;
+    return best;
+}
+
+// Tick source of CLOCK_START()/CLOCK_ELAPSED() (preludes). USE_CLOCK and CLOCK_PTX come from
+// Device.clock_defines (backends/glsl.py, backends/opencl.py) only in COUNT_WORK builds and only
+// where the device has a clock; every other build reads 0, so the counters' clock field is 0.
+#if defined(USE_CLOCK) && defined(LANG_GLSL)
+#define CLOCK_NOW() clock2x32ARB().x
+#elif defined(USE_CLOCK) && defined(CLOCK_PTX)
+INLINE uint clock_now_ptx(void) {
+    uint c;
+    __asm__ __volatile__("mov.u32 %0, %%clock;" : "=r"(c));
+    return c;
+}
+#define CLOCK_NOW() clock_now_ptx()
+#else
+#define CLOCK_NOW() 0u
+#endif
+
+// ---- One traversal's state ---------------------------------------------------------------------
+// The ray prepared for the watertight triangle test, the closest hit so far, and the work
+// counters (iterations of the walk, candidate tests, Line Space lookups, clock at the start),
+// which only COUNT_WORK builds store: the compiler drops them from the timed kernels.
+STRUCT(Trace) { WRay wr; float tmin; Hit best; uint iterations; uint tests; uint lookups; uint clock0; };
+
+INLINE Trace trace_start(Ray r) {
+    Trace tr;
+    tr.clock0 = CLOCK_START();
+    tr.best = no_hit(r.tmax);
+    tr.wr = make_wray(r.o, r.d);
+    tr.tmin = r.tmin;
+    tr.iterations = 0u;
+    tr.tests = 0u;
+    tr.lookups = 0u;
+    return tr;
+}
+
+// The walk may stop: the closest hit lies before t (the current cell's exit), so no later cell
+// can hold a nearer one.
+INLINE int trace_done(Trace tr, float t) { return (tr.best.prim >= 0 && tr.best.t <= t) ? 1 : 0; }
+
+// The hit to store: the counters written first (COUNT_WORK), then the loop probe (scene.h).
+INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
+#ifdef COUNT_WORK
+    V(work)[ray] = make_uint4(tr.iterations, tr.tests, tr.lookups, CLOCK_ELAPSED(tr.clock0));
+#endif
+    return cut_hit(CTX_ARG tr.best);
+}
+
+// The ray in grid space (scene.h), for walks over cells and for Line Space lookups. voxel_t: one
+// voxel edge along the ray's main axis, in t (the most t a chord through one voxel can span along
+// that axis). Unused fields cost nothing: the compiler drops them.
+STRUCT(GridRay) { float3 o; float3 d; float3 inv; float voxel_t; };
+
+INLINE GridRay make_grid_ray(CTX_PARAM float3 o, float3 d) {
+    GridRay g;
+    g.o = to_grid(CTX_ARG o);
+    g.d = d * V(grid_inv_voxel).xyz;
+    g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
+    g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
+    return g;
+}
+
+// The stretch (t0, t1) of the ray inside grid-space box [0, hi], within [tmin, tmax] (t0 > t1:
+// it misses the box).
+INLINE float2 grid_span(GridRay g, Ray r, float3 hi) {
+    float2 span = ray_box(g.o, g.inv, g.d, make_float3(0.0f, 0.0f, 0.0f), hi);
+    return make_float2(max(span.x, r.tmin), min(span.y, r.tmax));
+}
+
+// ---- A cell's candidates and the loop that tests them ----------------------------------------
+// begin..end in voxel_tris (a plain list), or with from_shaft in a Line Space shaft's list
+// (LS_CANDIDATE, linespace.h).
+STRUCT(Candidates) { uint begin; uint end; int from_shaft; };
+
+INLINE Candidates plain_list(uint begin, uint end) {
+    Candidates c;
+    c.begin = begin;
+    c.end = end;
+    c.from_shaft = 0;
+    return c;
+}
+
+#ifdef LEAF_LINE_SPACE
+// The cell with index `cell` (a voxel, an octree leaf) has Line Space ls_ids[cell] iff
+// ls_ids[cell + 1] > ls_ids[cell] (ls_ids: exclusive scan of the "has a Line Space" flags);
+// LS_NONE otherwise.
+#define LS_NONE 0xffffffffu
+INLINE uint cell_line_space(CTX_PARAM uint cell) {
+    uint ls = V(ls_ids)[cell];
+    return V(ls_ids)[cell + 1u] > ls ? ls : LS_NONE;
+}
+
+// The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`.
+INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
+    uint sid = ls * V(ls_shafts) + shaft;
+    Candidates c;
+    c.begin = LS_OFFSET(sid);
+    c.end = LS_OFFSET(sid + 1u);
+    c.from_shaft = 1;
+    return c;
+}
+#endif
+
+// Candidates are tested against the original ray (the watertight test of geometry.h, so t is the
+// world distance). A hit counts up to t_accept, the cell's exit plus a margin: the walk still ends
+// only once the closest hit lies before the cell's exit (trace_done), so the margin never lets a
+// farther hit win; it only keeps a hit that float rounding of the exit distance would push just
+// outside the cell. Without the bound, a triangle spanning several cells could end the walk with a
+// hit that a nearer triangle listed in the next cell beats.
+INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c, float t_accept) {
+    for (uint i = c.begin; i < c.end; ++i) {
+#ifdef LEAF_LINE_SPACE
+        uint tri = c.from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
+#else
+        uint tri = V(voxel_tris)[i];
+#endif
+        Triangle T = load_triangle(CTX_ARG tri);
+        float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
+        if (t <= t_accept) tr.best = closer(tr.best, t, I32(tri), tr.tmin);
+    }
+    tr.tests += c.end - c.begin;
+    tr.lookups += U32(c.from_shaft);
+    return tr;
+}
