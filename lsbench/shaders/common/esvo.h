@@ -42,7 +42,6 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
     float3 dn = d * inv_edge;
     float dlen = length(dn);
     float3 dd = dn / dlen;
-    float voxel_t = 1.0f / (res * dlen);  // one voxel edge, in world t
     // Components too small for the reciprocal become +-2^-23 (LK10: keeps t finite).
     float eps = 1.1920929e-7f;
     if (fabs(dd.x) < eps) dd.x = (as_uint(dd.x) & 0x80000000u) != 0u ? -eps : eps;
@@ -65,7 +64,6 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
     t_min = max(t_min, tmin * dlen);
     t_max = min(t_max, tmax * dlen);
-    float t_end = t_max / dlen;  // where the ray leaves the cube (or tmax), world units
     uint iterations = 0u;
     uint tests = 0u;
     uint lookups = 0u;
@@ -105,8 +103,7 @@ INLINE Hit trace_esvo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;
                         LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
-                                                      make_float2(t_min / dlen, t_exit),
-                                                      oct_accept(t_exit, t_end, voxel_t), tmin, best);
+                                                      make_float2(t_min / dlen, t_exit), tmin, best);
                         best = lr.best;
                         tests += lr.tests;
                         lookups += lr.lookups;

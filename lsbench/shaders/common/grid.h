@@ -114,9 +114,11 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
 
 #ifdef HAS_rays
 // ---- Traversal ------------------------------------------------------------------------------
-// Closest hit by 3D-DDA. A candidate's hit counts only if it lies inside the current voxel
-// (t <= the voxel's exit + a float tolerance): a triangle spanning several voxels could
-// otherwise end the walk with a hit that a later-listed, nearer triangle in the next voxel beats.
+// Closest hit by 3D-DDA. Every candidate's hit is kept (closer() keeps the nearest), but the walk
+// ends only once that hit lies before the current voxel's exit: a farther hit of a triangle that
+// spans several voxels is then beaten by any nearer one in the voxels still to come. (A hit past
+// the exit used to be thrown away, so a triangle listed in no later voxel was lost when float
+// rounding put its t a hair beyond the exit: strips in the grid's boundary planes, issue 13 item 1.)
 INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
 #ifdef COUNT_WORK
     uint clock0 = CLOCK_START();
@@ -146,7 +148,6 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
             iterations += 1u;
             uint vox = voxel_index(CTX_ARG cell);
             float t_exit = min(nx, min(ny, nz));
-            float t_accept = min(t_exit + 1e-5f * fabs(t_exit) + 1e-30f, t1 + 1e-5f * fabs(t1));
             uint begin = V(voxel_offsets)[vox];
             uint end = V(voxel_offsets)[vox + 1u];
             for (uint i = begin; i < end; ++i) {
@@ -154,7 +155,7 @@ INLINE Hit trace_grid(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint
                 Triangle T = load_triangle(CTX_ARG tri);
                 float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                 tests += 1u;
-                if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
+                best = closer(best, t, I32(tri), tmin);
             }
             if (best.prim >= 0 && best.t <= t_exit) break;
             if (t_exit >= t1) break;

@@ -39,7 +39,7 @@ INLINE void gls_cells_kernel(CTX_PARAM uint vox) {
 // face/point of the next (the step crosses exactly that face, and the two tangential cell-local
 // coordinates are the same on both sides), so each boundary is computed once (Alg. 2, lines 7,
 // 12-13); it is computed only when a Line Space needs it, so empty voxels cost nothing extra.
-// A hit counts only inside the voxel (t <= exit + tolerance), as in the plain grid.
+// Every candidate's hit is kept and the walk ends once it lies before the voxel's exit, as in the plain grid.
 INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint ray) {
     uint clock0 = CLOCK_START();
     Hit best = no_hit(tmax);
@@ -84,7 +84,6 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
             int face_out = 2 * axis_out + (icomp3(sgn, axis_out) > 0 ? 1 : 0);
             float2 uv_out = make_float2(0.0f, 0.0f);
             int have_uv_out = 0;
-            float t_accept = min(t_exit + 1e-5f * fabs(t_exit) + 1e-30f, t1 + 1e-5f * fabs(t1));
             uint begin = V(voxel_offsets)[vox];
             uint end = V(voxel_offsets)[vox + 1u];
             if (begin < end) {
@@ -103,7 +102,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                         Triangle T = load_triangle(CTX_ARG tri);
                         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;
-                        if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
+                        best = closer(best, t, I32(tri), tmin);
                     }
                 } else {
                     for (uint i = begin; i < end; ++i) {
@@ -111,7 +110,7 @@ INLINE Hit trace_grid_ls(CTX_PARAM float3 o, float3 d, float tmin, float tmax, u
                         Triangle T = load_triangle(CTX_ARG tri);
                         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
                         tests += 1u;
-                        if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
+                        best = closer(best, t, I32(tri), tmin);
                     }
                 }
             }

@@ -60,8 +60,9 @@ INLINE Hit cut_hit(CTX_PARAM Hit best) {
 
 // Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
 // gives the same ids whatever order the candidates arrive in (fill order is not deterministic).
+// Only a hit before tmax counts, so a miss (t = INF_F) never becomes one while best.t = tmax = inf.
 INLINE Hit closer(Hit best, float t, int prim, float tmin) {
-    if (t >= tmin && (t < best.t || (t == best.t && (best.prim < 0 || prim < best.prim)))) {
+    if (t >= tmin && (t < best.t || (t == best.t && best.prim >= 0 && prim < best.prim))) {
         best.t = t;
         best.prim = prim;
     }

@@ -185,11 +185,10 @@ INLINE void oct_leaves_kernel(CTX_PARAM uint gid) {
 #if defined(HAS_rays) && defined(HAS_leaves)
 // ---- Leaf handling shared by both traversals ---------------------------------------------
 // Candidates of a leaf are tested against the original ray (the watertight test of
-// geometry.h, so t is the world distance). A hit counts up to the leaf's exit plus a margin
-// (t_accept): the walk still ends only once the closest hit lies before the current leaf's
-// exit, so the margin never lets a farther hit win; it only keeps a hit that float rounding
-// of the exit distance would push just outside the leaf (it is found in this leaf, and a
-// triangle may not reach into the next one).
+// geometry.h, so t is the world distance). Every hit is kept, wherever it lies: the walk ends
+// only once the closest hit lies before the current leaf's exit, so a farther hit never wins,
+// and a hit that float rounding puts just past the leaf (of a triangle no later leaf lists)
+// is not lost (issue 13 item 1; this was a margin of 1/100 voxel past the exit).
 STRUCT(LeafResult) { Hit best; uint tests; uint lookups; };
 
 // The ray in grid space (voxel = unit cube), for the Line Space lookup of svo-ls / esvo-ls; the
@@ -220,7 +219,7 @@ INLINE GridRay make_grid_ray(CTX_PARAM float3 o, float3 d) {
 // and a ray in a leaf's face plane can then be given a leaf its real line only touches: that leaf
 // tests its plain list (tests/test_adversarial.py found such rays).
 INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 cell, float2 t_leaf,
-                                float t_accept, float tmin, Hit best) {
+                                float tmin, Hit best) {
     LeafResult res;
     uint begin = V(leaves)[2u * leaf];
     uint end = begin + V(leaves)[2u * leaf + 1u];
@@ -246,7 +245,7 @@ INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 c
 #endif
         Triangle T = load_triangle(CTX_ARG tri);
         float t = ray_triangle_wt(wr, T.a, T.b, T.c);
-        if (t <= t_accept) best = closer(best, t, I32(tri), tmin);
+        best = closer(best, t, I32(tri), tmin);
     }
     res.best = best;
     res.tests = end - begin;
@@ -254,11 +253,6 @@ INLINE LeafResult oct_test_leaf(CTX_PARAM WRay wr, GridRay gr, uint leaf, int3 c
     return res;
 }
 
-// Accept bound of a leaf in world units: its exit, a relative 1e-5 and 1/100 of a voxel
-// (voxel_t = one voxel edge in t), never past the end of the ray's span (t_end).
-INLINE float oct_accept(float t_exit, float t_end, float voxel_t) {
-    return min(t_exit + 1e-5f * fabs(t_exit) + 0.01f * voxel_t, t_end + 1e-5f * fabs(t_end));
-}
 #endif
 
 #if defined(HAS_rays) && defined(HAS_svo_nodes)
@@ -286,7 +280,6 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
     float2 span = ray_box(og, inv, dg, make_float3(0.0f, 0.0f, 0.0f), make_float3(fres, fres, fres));
     float t0 = max(span.x, tmin);
     float t1 = min(span.y, tmax);
-    float voxel_t = gr.voxel_t;  // >= shortest voxel crossing
     uint iterations = 0u;
     uint tests = 0u;
     uint lookups = 0u;
@@ -315,7 +308,7 @@ INLINE Hit trace_svo(CTX_PARAM float3 o, float3 d, float tmin, float tmax, uint 
                     // At the last level `cell` is the leaf's voxel, and the walk's stretch in it
                     // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
                     LeafResult lr = oct_test_leaf(CTX_ARG wr, gr, child - 1u, cell, make_float2(t_exit, t_exit),
-                                                  oct_accept(t_exit, t1, voxel_t), tmin, best);
+                                                  tmin, best);
                     best = lr.best;
                     tests += lr.tests;
                     lookups += lr.lookups;
