@@ -65,6 +65,8 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
     if defect.startswith("drop-reference"):
         _plant_dropped_reference(device, buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
+    elif defect.startswith("drop-triangle"):
+        _plant_dropped_triangle(device, buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
     return Built(structure, device, params, geometry, scene_buffers, buffers, uniforms, trace_spec,
                  build_seconds=seconds, stats=stats)
 
@@ -162,3 +164,17 @@ def _plant_dropped_reference(device: Device, buffers: dict, scene, victim: int |
     others = [int(x) for x in tris[offsets[voxel]:offsets[voxel + 1]] if x != victim]
     tris[pos] = others[0] if others else (victim + 1) % scene.triangle_count
     buffers["voxel_tris"] = device.upload("voxel_tris", tris)
+
+
+def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None) -> None:
+    """Test-only fault injection (env LSBENCH_PLANT_DEFECT=drop-triangle[:TRI]), the same for every
+    structure: every candidate list (voxel_tris, and the Line Space shafts' ls_shaft_tris*) loses
+    triangle TRI (default the one listed in most voxels), its entries overwritten by another
+    triangle, so tests can show that the gate catches any structure that lost a candidate."""
+    lists = [name for name in buffers if name == "voxel_tris" or name.startswith("ls_shaft_tris")]
+    if victim is None:
+        victim = int(np.argmax(np.bincount(device.read(buffers["voxel_tris"], np.uint32))))
+    for name in lists:
+        tris = device.read(buffers[name], np.uint32)
+        tris[tris == victim] = (victim + 1) % scene.triangle_count
+        buffers[name] = device.upload(name, tris)

@@ -50,7 +50,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     from lsbench.oracle.embree import embree_closest
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenes import load_scene
-    from lsbench.oracle.verify import compare
+    from lsbench.oracle.classifier import accuracy_fields
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -80,11 +80,9 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         rec.update({"build_seconds": built.build_seconds, "memory_bytes": built.memory_bytes,
                     "buffers": built.memory(), "stats": built.stats})
         hits = backends.trace(built, rays)
-        lo, hi = scene.bounds
-        acc = compare(hits.prim_ids, hits.distances, ref_prim, ref_t, rel_tol=settings.rel_tol,
-                      scene_extent=float(np.linalg.norm(hi - lo)))
-        rec.update(acc.to_dict())
-        rec["agreement"] = acc.agreement
+        # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
+        rec.update(accuracy_fields(scene, rays, hits.prim_ids, hits.distances, ref_prim, ref_t,
+                                   rel_tol=settings.rel_tol))
         if dump_hits:
             np.savez(dump_hits, origins=rays.origins, directions=rays.directions,
                      prim_ids=hits.prim_ids, distances=hits.distances,
