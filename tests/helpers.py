@@ -5,7 +5,7 @@ import numpy as np
 
 from lsbench import backends
 from lsbench.backends import BuildParams
-from lsbench.inputs.adversarial import adversarial_rays
+from lsbench.inputs.rays import adversarial_rays
 from lsbench.oracle.classifier import classify_disagreements
 from lsbench.oracle.embree import embree_closest
 

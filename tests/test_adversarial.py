@@ -12,8 +12,8 @@ import pytest
 
 from helpers import check_structure, explain, structure_params
 from lsbench import backends
-from lsbench.inputs.adversarial import RAY_CATEGORIES, adversarial_rays
-from lsbench.inputs.rays import RAY_SETS, RaySet, make_rays
+from lsbench.inputs.adversarial import RAY_CATEGORIES
+from lsbench.inputs.rays import RAY_SETS, RaySet, adversarial_rays, make_rays
 from lsbench.inputs.scenes import load_scene
 from lsbench.oracle.classifier import classify_disagreements as classify
 from lsbench.oracle.embree import embree_closest

@@ -1,7 +1,8 @@
 """Adversarial rays: the cases where traversals and ray/triangle tests fail.
 
-`adversarial_rays(scene)` (registered as the ray set "adversarial": `--rays adversarial`) builds
-a deterministic set of a few thousand rays from the scene's triangles and its bounding box
+`adversarial_arrays(scene)` (the ray set "adversarial": `--rays adversarial`, made a RaySet by
+lsbench/inputs/rays.py's `adversarial_rays`, so this module imports no ray module) builds a
+deterministic set of a few thousand rays from the scene's triangles and its bounding box
 (`scene.bounds`, independent of any grid resolution). Every ray has a unit float32 direction and
 the set's tmin is 0 (RaySet has one tmin per set). Categories (`RAY_CATEGORIES`, the second
 return value labels each ray):
@@ -33,7 +34,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from lsbench.inputs.rays import RaySet
 from lsbench.inputs.scene import Scene
 
 RAY_CATEGORIES = ("axis", "vertex", "edge", "plane", "box", "voxel", "surface", "miss", "short", "far")
@@ -58,8 +58,9 @@ def _sample_triangles(scene: Scene, rng, n: int) -> np.ndarray:
     return ids
 
 
-def adversarial_rays(scene: Scene) -> tuple[RaySet, np.ndarray]:
-    """(RaySet, category label per ray); deterministic for a given scene."""
+def adversarial_arrays(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(origins, unit directions, category label per ray): float32 (N, 3) arrays and an object
+    array; deterministic for a given scene. tmin is 0."""
     rng = np.random.default_rng(0x5EED)
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
     ext = hi - lo
@@ -175,11 +176,5 @@ def adversarial_rays(scene: Scene) -> tuple[RaySet, np.ndarray]:
     D32 = np.where(D == 0, D, D / np.linalg.norm(D, axis=1, keepdims=True)).astype(np.float32)
     O32 = O.astype(np.float32)
     good = np.isfinite(O32).all(axis=1) & np.isfinite(D32).all(axis=1) & (np.abs(D32).sum(axis=1) > 0)
-    rays = RaySet(name="adversarial", origins=np.ascontiguousarray(O32[good]),
-                  directions=np.ascontiguousarray(D32[good]), tmin=0.0)
-    return rays, np.asarray(labels, dtype=object)[good]
-
-
-def make_adversarial(scene: Scene, width: int = 0, height: int = 0, camera=None) -> RaySet:
-    """RAY_SETS entry: image size and camera do not apply."""
-    return adversarial_rays(scene)[0]
+    return (np.ascontiguousarray(O32[good]), np.ascontiguousarray(D32[good]),
+            np.asarray(labels, dtype=object)[good])
