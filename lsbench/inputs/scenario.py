@@ -32,8 +32,8 @@ Every key and value is checked when the file is read, before any case runs (RUN_
 table) is an error with a did-you-mean, as is a value of the wrong TOML type (`repeats = "3"`,
 `width = 32.5`, `heatmaps = 1`) or out of range (`repeats = 0`, `min_agreement = 1.5`,
 `backends = []`, a camera fov of 180). Key by key: width/height/gpu_* integers >= 1 with
-width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; min_agreement in
-[0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
+width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; max_unexplained an
+integer >= 0; min_agreement in [0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
 structures, backends, resolutions, ls_n, ls_min_candidates one value or a non-empty list;
 camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees.
 """
@@ -127,7 +127,7 @@ RUN_RULES: dict[str, Rule] = {
                  lambda v: isinstance(v, str) and (v in RAY_SETS or v.lower().endswith(".npz")),
                  names=tuple(sorted(RAY_SETS)), noun="ray set"),
     "repeats": integer(1), "warmup": integer(0),
-    "rel_tol": number(0), "min_agreement": number(0, 1),
+    "rel_tol": number(0), "max_unexplained": integer(0), "min_agreement": number(0, 1),
     "timeout_seconds": number(0, low_open=True), "memory_budget_mb": number(0, low_open=True),
     "heatmaps": FLAG, "embree_timing": FLAG,
 }
