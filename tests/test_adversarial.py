@@ -10,11 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import check_structure, explain, structure_params
 from lsbench import backends
-from lsbench.inputs.adversarial import RAY_CATEGORIES, adversarial_rays, check_structure, classify, structure_params
-from lsbench.oracle.embree import embree_closest
-from lsbench.inputs.rays import RAY_SETS, RaySet, make_rays
+from lsbench.inputs.adversarial import RAY_CATEGORIES
+from lsbench.inputs.rays import RAY_SETS, RaySet, adversarial_rays, make_rays
 from lsbench.inputs.scenes import load_scene
+from lsbench.oracle.classifier import classify_disagreements as classify
+from lsbench.oracle.embree import embree_closest
 
 REPO = Path(__file__).resolve().parents[1]
 STRUCTURES = backends.structure_names()
@@ -22,18 +24,7 @@ STRUCTURES = backends.structure_names()
 
 def _check(device, structure, scene, rays=None):
     params = structure_params(structure)
-    try:
-        return check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
-    except ValueError as exc:  # a structure registered with parameters this test does not know
-        pytest.skip(f"{structure}: {exc}")
-
-
-def _explain(out, limit=5):
-    rays, cats, hits = out["rays"], out["categories"], out["hits"]
-    ref_p, ref_t = out["ref"]
-    return "; ".join(f"ray {i} ({cats[i]}) o={rays.origins[i].tolist()} d={rays.directions[i].tolist()}: "
-                     f"backend {hits.prim_ids[i]}@{hits.distances[i]:.7g}, embree {ref_p[i]}@{ref_t[i]:.7g}"
-                     for i in out["unexplained"][:limit])
+    return check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
 
 
 def test_ray_set_contents():
@@ -66,7 +57,7 @@ def test_ray_set_contents():
 def test_adversarial_agrees_or_documented_tie(device, structure, scene_name):
     scene = load_scene(scene_name)
     out = _check(device, structure, scene)
-    assert out["unexplained"] == [], _explain(out)
+    assert out["unexplained"] == [], explain(out)
     counts = out["counts"]
     # most rays are plain agreement; ties stay a minority
     assert counts.get("agree", 0) >= 0.75 * out["rays"].count, counts

@@ -11,14 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import scene_path
+from helpers import check_structure, structure_params
 from lsbench import backends
-from lsbench.inputs.adversarial import check_structure, structure_params
 from lsbench.inputs.rays import primary_rays
 from lsbench.inputs.scene import Scene
 from lsbench.inputs.scenes import load_scene
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared" / "scenes" / "teapot.ply"
 
 
 def lsbench(*args):
@@ -56,9 +56,7 @@ def _write_bad(tmp_path, name):
     content, needle = BAD_SCENES[name]
     path = tmp_path / name
     if content == "TRUNCATED":
-        if not SHARED.is_file():
-            pytest.skip("teapot.ply absent")
-        path.write_bytes(SHARED.read_bytes()[:3000])
+        path.write_bytes(Path(scene_path("teapot.ply")).read_bytes()[:3000])
     elif isinstance(content, bytes):
         path.write_bytes(content)
     elif content is not None:
@@ -154,10 +152,7 @@ def test_unusual_scenes_agree_with_embree(device, structure):
         if kind == "zero-area":
             assert scene.triangle_count == 40  # kept, never dropped
         for rays in (primary_rays(scene, 40, 30), None):
-            try:
-                out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
-            except ValueError as exc:
-                pytest.skip(f"{structure}: {exc}")
+            out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
             assert out["unexplained"] == [], (kind, out["counts"])
             if rays is not None:
                 hits = out["hits"]

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import base64
 import json
-import os
 import time
 from pathlib import Path
 
@@ -12,9 +11,6 @@ import pytest
 
 from lsbench.inputs.scene import Camera, Scene, SceneError
 from lsbench.inputs.scenes import builtin_names, default_camera, load_scene
-
-SCENES_DIR = Path(os.environ.get(
-    "LSBENCH_SCENES", Path(__file__).resolve().parents[1] / ".." / "shared" / "scenes"))
 
 # name -> (min, max) triangle count
 BUILTIN_COUNTS = {
@@ -104,10 +100,9 @@ def test_default_camera_prefers_the_scene_camera():
 
 
 def _shared_scene(name: str) -> Path:
-    path = SCENES_DIR / name
-    if not path.is_file():
-        pytest.skip(f"shared scene {path} not present (set LSBENCH_SCENES to the scenes folder)")
-    return path
+    from conftest import scene_path  # skips when absent, fails when CI is set
+
+    return Path(scene_path(name))
 
 
 @pytest.mark.parametrize("name, tris, verts", [("cornell_box.ply", 36, 72),

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lsbench.oracle.verify import (
-    AGREE, EXTRA, MISSED, TIE, WRONG, Accuracy, classify, compare, disagreement_indices,
+    AGREE, DISTANCE, EXTRA, MISSED, TIE, WRONG, Accuracy, classify, compare, disagreement_indices,
     resolve_abs_tol,
 )
 
@@ -13,7 +13,8 @@ INF = np.inf
 # One ray per case:            ref prim, ref t, our prim, our t,   category
 CASES = [
     ("same prim",               3, 2.0,    3, 2.0,       AGREE),
-    ("same prim, t off",        3, 2.0,    3, 2.5,       AGREE),
+    ("same prim, t off",        3, 2.0,    3, 2.5,       DISTANCE),  # right triangle, wrong t
+    ("same prim, t in tol",     3, 2.0,    3, 2.0001,    AGREE),     # 1e-4 <= 1e-6 + 1e-4*2.0001
     ("both miss",              -1, INF,   -1, INF,       AGREE),
     ("both miss, odd t",       -1, INF,   -1, np.nan,    AGREE),  # a miss's t is not read
     ("tie on shared edge",      4, 10.0,   5, 10.0005,   TIE),    # 5e-4 <= 1e-6 + 1e-4*10.0005
@@ -45,10 +46,9 @@ def test_each_case_lands_in_its_category():
 def test_counts_and_agreement():
     acc = compare(*arrays())
     assert isinstance(acc, Accuracy)
-    assert (acc.agree, acc.ties, acc.missed, acc.extra, acc.wrong) == (4, 1, 1, 2, 4)
-    assert acc.ray_count == len(CASES) and acc.disagreements == 7
+    assert (acc.agree, acc.ties, acc.missed, acc.extra, acc.wrong, acc.distance) == (4, 1, 1, 2, 4, 1)
+    assert acc.ray_count == len(CASES) and acc.disagreements == 8
     assert acc.agreement == pytest.approx(5 / len(CASES))
-    assert acc.agree_dt_exceeded == 1  # "same prim, t off"
     assert acc.rel_tol == 1e-4 and acc.abs_tol == 1e-6
 
 
@@ -74,6 +74,16 @@ def test_empty():
     assert acc.ray_count == 0 and acc.agreement == 1.0
 
 
+def test_distance_counts_for_the_same_primitive():
+    """Issue 13 item 4: the right triangle at the wrong distance (say, measured from a cell's
+    entry) is a disagreement, with the same tolerance a tie gets."""
+    args = ([7, 7], [1.5, 1.0000001], [7, 7], [1.0, 1.0])
+    assert classify(*args).tolist() == [DISTANCE, AGREE]
+    acc = compare(*args)
+    assert (acc.agree, acc.distance, acc.disagreements) == (1, 1, 1) and acc.agreement == 0.5
+    assert acc.max_abs_dt == pytest.approx(0.5)
+
+
 def test_tolerance_rules():
     assert resolve_abs_tol(None, None) == 1e-6
     assert resolve_abs_tol(None, 200.0) == pytest.approx(2e-3)
@@ -95,7 +105,7 @@ def test_unsigned_miss_encoding():
 
 def test_disagreement_indices():
     idx = disagreement_indices(*arrays())
-    want = [i for i, c in enumerate(CASES) if c[5] in (MISSED, EXTRA, WRONG)]
+    want = [i for i, c in enumerate(CASES) if c[5] in (MISSED, EXTRA, WRONG, DISTANCE)]
     assert idx.tolist() == want and idx.dtype == np.int64
 
 

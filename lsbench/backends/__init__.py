@@ -62,8 +62,9 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     device.finish()
     seconds = time.perf_counter() - t0
     defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
-    if defect.startswith("drop-reference"):
-        _plant_dropped_reference(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
+    if defect.startswith(("drop-reference", "drop-triangle")):
+        _plant_dropped_triangle(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None,
+                                line_spaces=defect.startswith("drop-triangle"))
     return Built(structure, device, params, geometry, scene_buffers, result.buffers, result.uniforms,
                  result.trace_spec, build_seconds=seconds, stats=result.stats)
 
@@ -140,24 +141,19 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5) -> Timing:
     return timing
 
 
-def _plant_dropped_reference(device: Device, buffers: dict, scene, victim: int | None) -> None:
-    """Test-only fault injection (env LSBENCH_PLANT_DEFECT=drop-reference[:TRI]): drop one
-    triangle (TRI, default the one listed in most voxels) from the first voxel that lists it,
-    overwriting its entry with another triangle of that list, so tests can show that the Embree
-    gate catches a structure that lost a reference."""
-    if "voxel_offsets" not in buffers or "voxel_tris" not in buffers:
-        return
-    offsets = device.read(buffers["voxel_offsets"], np.uint32).astype(np.int64)
-    tris = device.read(buffers["voxel_tris"], np.uint32)
-    if len(tris) == 0:
-        return
+def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None, line_spaces: bool) -> None:
+    """Test-only fault injection, so tests can show that the gate catches a structure that lost a
+    candidate. LSBENCH_PLANT_DEFECT=drop-reference[:TRI]: triangle TRI (default the one listed in
+    most voxels) leaves every voxel list (voxel_tris: grid, the octrees' leaves, and the voxels of
+    a Line Space structure that have none); drop-triangle[:TRI] also leaves every Line Space shaft
+    list (ls_shaft_tris*), the same mutation for every structure. Its entries are overwritten by
+    another triangle. (Dropping it from one voxel only is no defect any more: the traversals keep
+    a hit found in an earlier voxel that lists the triangle, shaders/common/grid.h.)"""
+    lists = [name for name in buffers
+             if name == "voxel_tris" or (line_spaces and name.startswith("ls_shaft_tris"))]
     if victim is None:
-        victim = int(np.argmax(np.bincount(tris)))
-    where = np.nonzero(tris == victim)[0]
-    if len(where) == 0:
-        return
-    pos = int(where[0])
-    voxel = int(np.searchsorted(offsets, pos, side="right") - 1)
-    others = [int(x) for x in tris[offsets[voxel]:offsets[voxel + 1]] if x != victim]
-    tris[pos] = others[0] if others else (victim + 1) % scene.triangle_count
-    buffers["voxel_tris"] = device.upload("voxel_tris", tris)
+        victim = int(np.argmax(np.bincount(device.read(buffers["voxel_tris"], np.uint32))))
+    for name in lists:
+        tris = device.read(buffers[name], np.uint32)
+        tris[tris == victim] = (victim + 1) % scene.triangle_count
+        buffers[name] = device.upload(name, tris)

@@ -13,8 +13,7 @@ cells with a Line Space; COUNT_WORK: profiling counters; OCT_DEPTH, LS_CLIP_SH, 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 from lsbench.paths import SHADER_ROOT
 

@@ -103,9 +103,9 @@ class OpenCLDevice(Device):
                 cl.Program(ctx, "__kernel void probe(__global int* a) { a[0] = 1; }").build()
                 return d
             except cl.Error as exc:
-                first = str(exc).strip().splitlines()
+                first = (str(exc).strip().splitlines() or ["?"])[0]
                 self.skipped_devices.append(f"{d.name.strip()} ({d.platform.version.strip()}): "
-                                            "cannot build kernels")
+                                            f"cannot build kernels ({first[:120]})")
         raise DeviceError("no OpenCL device can build kernels: " + "; ".join(self.skipped_devices)
                           + "; " + start_failure_hint("on Debian `apt-get install pocl-opencl-icd` "
                                                       "gives a working CPU device"))

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lsbench.inputs.adversarial import adversarial_arrays
 from lsbench.inputs.checks import BadValue, check_camera, check_image_size
 from lsbench.inputs.scene import Camera, Scene, arrays_hash
 
@@ -132,10 +133,14 @@ def load_rays_file(path: str) -> RaySet:
 RAY_SETS: dict[str, Callable[..., RaySet]] = {"primary": primary_rays}
 
 
-def _adversarial(scene: Scene, width: int, height: int, camera: Camera | None = None) -> RaySet:
-    from lsbench.inputs.adversarial import make_adversarial  # imports this module: keep it lazy
+def adversarial_rays(scene: Scene) -> tuple[RaySet, np.ndarray]:
+    """The adversarial ray set (lsbench/inputs/adversarial.py) and its category label per ray."""
+    origins, directions, labels = adversarial_arrays(scene)
+    return RaySet(name="adversarial", origins=origins, directions=directions, tmin=0.0), labels
 
-    return make_adversarial(scene, width, height, camera)
+
+def _adversarial(scene: Scene, width: int, height: int, camera: Camera | None = None) -> RaySet:
+    return adversarial_rays(scene)[0]  # image size and camera do not apply
 
 
 RAY_SETS["adversarial"] = _adversarial

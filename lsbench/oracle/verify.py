@@ -2,22 +2,24 @@
 
 Every ray falls in exactly one category:
 
-- `agree`  : same primitive, or both miss.
-- `tie`    : both hit different primitives at the same distance within tolerance (shared edges,
-             coplanar or duplicated faces: either answer is a correct closest hit).
-- `missed` : Embree hits, the backend misses.
-- `extra`  : the backend hits, Embree misses.
-- `wrong`  : both hit different primitives and the distances differ beyond tolerance.
+- `agree`    : same primitive at the same distance within tolerance, or both miss.
+- `tie`      : both hit different primitives at the same distance within tolerance (shared
+               edges, coplanar or duplicated faces: either answer is a correct closest hit).
+- `missed`   : Embree hits, the backend misses.
+- `extra`    : the backend hits, Embree misses.
+- `wrong`    : both hit different primitives and the distances differ beyond tolerance.
+- `distance` : same primitive, but the distances differ beyond tolerance (a traversal that
+               finds the right triangle and reports the wrong t, say measured from a cell's entry).
 
 A miss is prim id -1 (any negative id, or 0xFFFFFFFF from an unsigned buffer). The distance of a
 miss is not looked at. A backend *hit* whose distance is NaN is never agreement: it is `wrong`
 when Embree hits (even with the same primitive) and `extra` when Embree misses. An infinite
 distance never ties (the relative tolerance would otherwise be infinite too).
 
-Tolerance for a tie: |t - t_ref| <= abs_tol + rel_tol * max(t_ref, t). abs_tol defaults to
-1e-5 * scene_extent (the scene bounding-box diagonal) when that is given, else 1e-6.
-Same-primitive hits count as `agree` whatever their distances; their distance error still shows
-in max/median |dt| and in `agree_dt_exceeded`.
+Distance tolerance (agree and tie): |t - t_ref| <= abs_tol + rel_tol * max(t_ref, t). abs_tol
+defaults to 1e-5 * scene_extent (the scene bounding-box diagonal) when that is given, else 1e-6.
+`missed`, `extra`, `wrong` and `distance` are the disagreements; lsbench.oracle.classifier
+re-evaluates each in float64 and says which of them float32 or Embree explain.
 """
 from __future__ import annotations
 
@@ -25,8 +27,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-AGREE, TIE, MISSED, EXTRA, WRONG = 0, 1, 2, 3, 4
-CATEGORY_NAMES = ("agree", "tie", "missed", "extra", "wrong")
+AGREE, TIE, MISSED, EXTRA, WRONG, DISTANCE = 0, 1, 2, 3, 4, 5
+CATEGORY_NAMES = ("agree", "tie", "missed", "extra", "wrong", "distance")
 
 
 @dataclass
@@ -37,16 +39,16 @@ class Accuracy:
     missed: int
     extra: int
     wrong: int
+    distance: int  # same primitive, |dt| beyond the tolerance
     agreement: float  # (agree + ties) / ray_count; 1.0 for an empty ray set
     max_abs_dt: float  # over rays where both hit (NaN distances left out); 0.0 if none
     median_abs_dt: float
-    agree_dt_exceeded: int  # same primitive, but |dt| beyond the tie tolerance (informative)
     rel_tol: float
     abs_tol: float
 
     @property
     def disagreements(self) -> int:
-        return self.missed + self.extra + self.wrong
+        return self.missed + self.extra + self.wrong + self.distance
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -97,7 +99,8 @@ def _categories(p, t, r, tr, rel_tol: float, abs_tol: float) -> tuple[np.ndarray
 
     cat = np.full(p.shape, WRONG, dtype=np.int8)
     cat[~hit & ~ref_hit] = AGREE
-    cat[both & (p == r) & ~nan_hit] = AGREE
+    cat[both & (p == r) & ~nan_hit] = DISTANCE
+    cat[both & (p == r) & ~nan_hit & close] = AGREE
     cat[both & (p != r) & close] = TIE  # nan_hit gives close == False
     cat[~hit & ref_hit] = MISSED
     cat[hit & ~ref_hit] = EXTRA
@@ -107,7 +110,7 @@ def _categories(p, t, r, tr, rel_tol: float, abs_tol: float) -> tuple[np.ndarray
 def classify(
     prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None
 ) -> np.ndarray:
-    """int8 category per ray: AGREE, TIE, MISSED, EXTRA, WRONG (see module docstring)."""
+    """int8 category per ray: AGREE, TIE, MISSED, EXTRA, WRONG, DISTANCE (module docstring)."""
     p, t, r, tr = _inputs(prim_ids, distances, ref_prim_ids, ref_distances)
     return _categories(p, t, r, tr, float(rel_tol), resolve_abs_tol(abs_tol, scene_extent))[0]
 
@@ -125,10 +128,6 @@ def compare(
     measured = dt[~np.isnan(dt)]
     max_dt = float(measured.max()) if measured.size else 0.0
     median_dt = float(np.median(measured)) if measured.size else 0.0
-    with np.errstate(invalid="ignore"):
-        tol = abs_tol + rel_tol * np.maximum(t, tr)
-        exceeded = (cat == AGREE) & (p >= 0) & ~(np.isfinite(dt) & (dt <= tol))
-
     return Accuracy(
         ray_count=n,
         agree=int(counts[AGREE]),
@@ -136,10 +135,10 @@ def compare(
         missed=int(counts[MISSED]),
         extra=int(counts[EXTRA]),
         wrong=int(counts[WRONG]),
+        distance=int(counts[DISTANCE]),
         agreement=float(counts[AGREE] + counts[TIE]) / n if n else 1.0,
         max_abs_dt=max_dt,
         median_abs_dt=median_dt,
-        agree_dt_exceeded=int(np.count_nonzero(exceeded)),
         rel_tol=float(rel_tol),
         abs_tol=abs_tol,
     )
@@ -148,7 +147,7 @@ def compare(
 def disagreement_indices(
     prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None
 ) -> np.ndarray:
-    """Sorted int64 indices of the rays that are missed, extra or wrong (for debugging dumps);
+    """Sorted int64 indices of the disagreeing rays (missed, extra, wrong, distance);
     `classify()` tells which category each one is."""
     cat = classify(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol, abs_tol, scene_extent)
     return np.flatnonzero(cat >= MISSED).astype(np.int64)

@@ -2,8 +2,8 @@
 
 Defined once here; every field is explained (name, unit, meaning) in docs/record.md, and
 tests/test_record.py fails when the two disagree. The accuracy fields are those of
-`lsbench.oracle.verify.Accuracy`, flattened into the record, so a field added there is a
-column here without being listed twice.
+`lsbench.oracle.verify.Accuracy` and `lsbench.oracle.classifier.Classification`, flattened into
+the record, so a field added there is a column here without being listed twice.
 
 What decides whether a stored record still stands for a case (resume, lsbench/running/runner.py)
 is here too: its identity (key, scene and ray contents) and environment (code, device, settings
@@ -15,6 +15,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 
+from lsbench.oracle.classifier import Classification
 from lsbench.oracle.verify import Accuracy
 
 # 2: the first defined record (resolution_x/y/z, per-ray work means, settings, diff_hash);
@@ -62,6 +63,7 @@ class Record:
     buffers: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
     accuracy: Accuracy | None = None  # flattened into the record's columns by to_dict
+    classification: Classification | None = None  # likewise
     trace_seconds: float | None = None
     trace_seconds_all: list = field(default_factory=list)
     trace_seconds_min: float | None = None
@@ -93,9 +95,10 @@ class Record:
         of results.jsonl has the same fields and pandas gives each column one type."""
         out = {}
         for name in _OWN_FIELDS:
-            if name == "accuracy":
-                for acc_name in ACCURACY_FIELDS:
-                    out[acc_name] = None if self.accuracy is None else getattr(self.accuracy, acc_name)
+            if name in FLATTENED:
+                group = getattr(self, name)
+                for column in FLATTENED[name]:
+                    out[column] = None if group is None else getattr(group, column)
             else:
                 value = getattr(self, name)
                 out[name] = dict(value) if isinstance(value, dict) else value
@@ -103,15 +106,17 @@ class Record:
 
 
 _OWN_FIELDS = tuple(f.name for f in dataclasses.fields(Record))
-# Accuracy's fields as record columns; ray_count is already the record's own (the same number).
-ACCURACY_FIELDS = tuple(f.name for f in dataclasses.fields(Accuracy) if f.name not in _OWN_FIELDS)
+# Groups whose fields are record columns: Accuracy's (ray_count is already the record's own, the
+# same number) and the classifier's.
+FLATTENED = {group: tuple(f.name for f in dataclasses.fields(cls) if f.name not in _OWN_FIELDS)
+             for group, cls in (("accuracy", Accuracy), ("classification", Classification))}
 
 
 def field_names() -> tuple[str, ...]:
     """Every column of a stored record, in order (what docs/record.md documents)."""
     names: list[str] = []
     for name in _OWN_FIELDS:
-        names.extend(ACCURACY_FIELDS if name == "accuracy" else (name,))
+        names.extend(FLATTENED.get(name, (name,)))
     return tuple(names)
 
 

@@ -82,7 +82,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     from lsbench.oracle.embree import embree_closest
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenes import load_scene
-    from lsbench.oracle.verify import compare
+    from lsbench.oracle.classifier import judge_hits
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -105,9 +105,9 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
         hits = backends.trace(built, rays)
-        lo, hi = scene.bounds
-        rec.accuracy = compare(hits.prim_ids, hits.distances, ref_prim, ref_t, rel_tol=settings.rel_tol,
-                               scene_extent=float(np.linalg.norm(hi - lo)))
+        # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
+        rec.accuracy, rec.classification = judge_hits(scene, rays, hits.prim_ids, hits.distances,
+                                                      ref_prim, ref_t, rel_tol=settings.rel_tol)
         if dump_hits:
             np.savez(dump_hits, origins=rays.origins, directions=rays.directions,
                      prim_ids=hits.prim_ids, distances=hits.distances,

@@ -242,7 +242,8 @@ def resume_text(decisions, fresh: bool) -> str:
 def progress_text(rec: dict) -> str:
     if rec.get("status") != "ok":
         return f"FAILED ({rec.get('wall_seconds', 0):.1f} s): {rec.get('reason')}"
-    return (f"ok ({rec.get('wall_seconds', 0):.1f} s): agreement {rec['agreement']:.6f}, "
+    return (f"ok ({rec.get('wall_seconds', 0):.1f} s): agreement {rec['agreement']:.6f} "
+            f"({rec.get('unexplained')} unexplained), "
             f"{rec['rays_per_second'] / 1e6:.2f} Mrays/s, {rec['memory_bytes'] / 2**20:.1f} MiB, "
             f"build {rec['build_seconds']:.2f} s")
 

@@ -52,7 +52,6 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     float3 dn = d * inv_edge;
     float dlen = length(dn);
     float3 dd = dn / dlen;
-    float voxel_t = 1.0f / (res * dlen);  // one voxel edge, in world t
     // Components too small for the reciprocal become +-2^-23 (LK10: keeps t finite).
     float eps = 1.1920929e-7f;
     if (fabs(dd.x) < eps) dd.x = (as_uint(dd.x) & 0x80000000u) != 0u ? -eps : eps;
@@ -75,7 +74,6 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
     t_min = max(t_min, ray.tmin * dlen);
     t_max = min(t_max, ray.tmax * dlen);
-    float t_end = t_max / dlen;  // where the ray leaves the cube (or tmax), world units
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
         // one per level above the leaves, "sized to depth".
@@ -112,7 +110,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;
                         tr = oct_test_leaf(CTX_ARG tr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
-                                           make_float2(t_min / dlen, t_exit), oct_accept(t_exit, t_end, voxel_t));
+                                           make_float2(t_min / dlen, t_exit));
                         if (trace_done(tr, t_exit) != 0) break;
                     } else {
                         // PUSH: remember the parent unless the ray leaves it together with

@@ -44,7 +44,7 @@ INLINE float2 ray_box(float3 o, float3 inv_d, float3 d, float3 lo, float3 hi) {
 // point on an edge shared by two triangles gives the same edge value (opposite sign) in
 // both, so no ray slips through a shared edge (Moeller-Trumbore does, at box corners).
 // The per-ray part (axis permutation and shear) is computed once per ray.
-STRUCT(WRay) { float3 o; int kx; int ky; int kz; float sx; float sy; float sz; };
+STRUCT(WRay) { float3 o; float3 d; int kx; int ky; int kz; float sx; float sy; float sz; };
 
 // Direction components below 1e-30 (denormals included) count as signed zeros here: a ray in
 // a triangle's plane whose off-plane component is 1.4e-45 otherwise gets tiny non-zero edge
@@ -56,6 +56,7 @@ INLINE WRay make_wray(float3 o, float3 d0) {
     float3 d = make_float3(flush_tiny(d0.x), flush_tiny(d0.y), flush_tiny(d0.z));
     WRay r;
     r.o = o;
+    r.d = d;
     float ax = fabs(d.x), ay = fabs(d.y), az = fabs(d.z);
     r.kz = (ax >= ay && ax >= az) ? 0 : (ay >= az ? 1 : 2);
     r.kx = (r.kz + 1) % 3;
@@ -74,6 +75,31 @@ INLINE float3 wray_vertex(WRay r, float3 v) {
     return make_float3(comp3(p, r.kx) - r.sx * pz, comp3(p, r.ky) - r.sy * pz, r.sz * pz);
 }
 
+// Distance of the hit once the edge test has said "inside": where the ray meets the triangle's
+// plane (as Embree's Moeller-Trumbore computes t), not the barycentric mean of the sheared
+// vertex depths, whose weights are differences of nearly equal products for a long thin
+// triangle (a 5 m x 0.7 mm strip gave t off by 5e-5 relative, pushing hits past the cell exit;
+// issue 13 item 1). The normal is the cross product of the two shortest edges (they meet at the
+// largest angle, >= 60 degrees, so it is well conditioned), made exactly perpendicular to the
+// longest edge: a sliver's plane is then only unsure about its rotation about that edge, which
+// moves the hit by ~2^-24 of the edge (issue 13 item 3: collinear triangles were hit up to 2.5e-3
+// off). A zero normal (a zero-area triangle has no surface) or a ray in the plane to float
+// precision is a miss; t stays inside the vertices' depth range [zlo, zhi] along the ray.
+INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo, float zhi) {
+    float3 e0 = v1 - v0, e1 = v2 - v1, e2 = v0 - v2;
+    float l0 = dot(e0, e0), l1 = dot(e1, e1), l2 = dot(e2, e2);
+    float3 lng = l0 >= l1 && l0 >= l2 ? e0 : (l1 >= l2 ? e1 : e2);
+    float3 n = l0 >= l1 && l0 >= l2 ? cross(e1, e2) : (l1 >= l2 ? cross(e2, e0) : cross(e0, e1));
+    float ll = max(l0, max(l1, l2));
+    if (ll > 0.0f) n = n - lng * (dot(n, lng) / ll);
+    float den = dot(n, r.d);
+    // in the plane to float precision (|cos| <= 2^-23; also n = 0): the edge test's "inside" is
+    // rounding, and no distance along the ray is meaningful
+    if (fabs(den) <= 1.1920929e-7f * sqrt(dot(n, n))) return INF_F;
+    float3 p = l0 >= l1 && l0 >= l2 ? v0 : (l1 >= l2 ? v1 : v2);  // on the longest edge
+    return clamp(dot(n, p - r.o) / den, zlo, zhi);
+}
+
 // Returns t (distance along the unit direction), or INF_F for a miss. Edges and vertices
 // count as inside, so a ray through a shared edge hits one of the two triangles (a tie).
 INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
@@ -86,8 +112,7 @@ INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
     if ((u < 0.0f || v < 0.0f || w < 0.0f) && (u > 0.0f || v > 0.0f || w > 0.0f)) return INF_F;
     float det = u + v + w;
     if (det == 0.0f) return INF_F;  // ray in the triangle's plane, or a degenerate triangle
-    float t = (u * a.z + v * b.z + w * c.z) / det;
-    return t;
+    return triangle_plane_t(r, v0, v1, v2, min(a.z, min(b.z, c.z)), max(a.z, max(b.z, c.z)));
 }
 
 // --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------

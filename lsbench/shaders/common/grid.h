@@ -91,8 +91,8 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
 // ray's entry and exit select (grid_ls.h: gls_voxel_shaft, thesis Algorithm 2). Per voxel the walk
 // knows where the ray's line enters it (t_in, through a face of axis axis_in) and leaves it
 // (t_exit, axis_out); the exit of one voxel is the entry of the next (the step crosses exactly
-// that face), so each boundary is computed once (Alg. 2, lines 7, 12-13). A hit counts only
-// inside the voxel (trace.h: test_candidates, trace_done).
+// that face), so each boundary is computed once (Alg. 2, lines 7, 12-13). The walk ends once the
+// closest hit lies before the voxel's exit (trace.h: test_candidates, trace_done).
 STRUCT(GridStep) { int3 cell; float t_in; int axis_in; float t_exit; int axis_out; };
 
 #ifdef LEAF_LINE_SPACE
@@ -136,8 +136,7 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
             tr.iterations += 1u;
             s.t_exit = min(nx, min(ny, nz));
             s.axis_out = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
-            float t_accept = min(s.t_exit + 1e-5f * fabs(s.t_exit) + 1e-30f, t1 + 1e-5f * fabs(t1));
-            tr = test_candidates(CTX_ARG tr, grid_voxel(CTX_ARG g, s), t_accept);
+            tr = test_candidates(CTX_ARG tr, grid_voxel(CTX_ARG g, s));
             if (trace_done(tr, s.t_exit) != 0) break;
             if (s.t_exit >= t1) break;
             if (s.axis_out == 0) {

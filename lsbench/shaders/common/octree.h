@@ -178,18 +178,12 @@ INLINE void oct_leaves_kernel(CTX_PARAM uint m) {
 INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf, int3 cell, float2 t_leaf);  // octree_ls.h
 #endif
 
-INLINE Trace oct_test_leaf(CTX_PARAM Trace tr, GridRay g, uint leaf, int3 cell, float2 t_leaf, float t_accept) {
+INLINE Trace oct_test_leaf(CTX_PARAM Trace tr, GridRay g, uint leaf, int3 cell, float2 t_leaf) {
     uint begin = V(leaves)[2u * leaf];
     Candidates c = plain_list(begin, begin + V(leaves)[2u * leaf + 1u]);
 #ifdef LEAF_LINE_SPACE
     c = ols_leaf_shaft(CTX_ARG c, g, leaf, cell, t_leaf);
 #endif
-    return test_candidates(CTX_ARG tr, c, t_accept);
-}
-
-// Accept bound of a leaf in world units (trace.h: test_candidates): its exit, a relative 1e-5 and
-// 1/100 of a voxel (voxel_t = one voxel edge in t), never past the end of the ray's span (t_end).
-INLINE float oct_accept(float t_exit, float t_end, float voxel_t) {
-    return min(t_exit + 1e-5f * fabs(t_exit) + 0.01f * voxel_t, t_end + 1e-5f * fabs(t_end));
+    return test_candidates(CTX_ARG tr, c);
 }
 #endif  // leaf handling

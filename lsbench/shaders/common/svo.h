@@ -39,7 +39,6 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
     float2 span = grid_span(gr, ray, make_float3(fres, fres, fres));
     float t0 = span.x;
     float t1 = span.y;
-    float voxel_t = gr.voxel_t;  // >= shortest voxel crossing
     if (t0 <= t1) {
         uint stack[OCT_DEPTH];
         stack[0] = 0u;  // the root
@@ -64,8 +63,7 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                 if (level == OCT_DEPTH) {
                     // At the last level `cell` is the leaf's voxel, and the walk's stretch in it
                     // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
-                    tr = oct_test_leaf(CTX_ARG tr, gr, child - 1u, cell, make_float2(t_exit, t_exit),
-                                       oct_accept(t_exit, t1, voxel_t));
+                    tr = oct_test_leaf(CTX_ARG tr, gr, child - 1u, cell, make_float2(t_exit, t_exit));
                     if (trace_done(tr, t_exit) != 0) break;
                 } else {
                     // Descend (lines 11-18): enter the child octant that holds the entry point.

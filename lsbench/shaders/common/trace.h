@@ -33,8 +33,9 @@ INLINE void store_hit(CTX_PARAM uint ray, Hit h) {
 
 // Closest-hit update with a deterministic tie-break (smaller id wins at equal t), so a run
 // gives the same ids whatever order the candidates arrive in (fill order is not deterministic).
+// Only a hit before tmax counts, so a miss (t = INF_F) never becomes one while best.t = tmax = inf.
 INLINE Hit closer(Hit best, float t, int prim, float tmin) {
-    if (t >= tmin && (t < best.t || (t == best.t && (best.prim < 0 || prim < best.prim)))) {
+    if (t >= tmin && (t < best.t || (t == best.t && best.prim >= 0 && prim < best.prim))) {
         best.t = t;
         best.prim = prim;
     }
@@ -151,12 +152,12 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
 #endif
 
 // Candidates are tested against the original ray (the watertight test of geometry.h, so t is the
-// world distance). A hit counts up to t_accept, the cell's exit plus a margin: the walk still ends
-// only once the closest hit lies before the cell's exit (trace_done), so the margin never lets a
-// farther hit win; it only keeps a hit that float rounding of the exit distance would push just
-// outside the cell. Without the bound, a triangle spanning several cells could end the walk with a
-// hit that a nearer triangle listed in the next cell beats.
-INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c, float t_accept) {
+// world distance). Every hit is kept, wherever along the ray it lies: the walk ends only once the
+// closest hit lies before the current cell's exit (trace_done), so a farther hit of a triangle that
+// spans several cells is beaten by any nearer one in the cells still to come. (A hit past the exit
+// used to be thrown away, so a triangle listed in no later cell was lost when float rounding put
+// its t a hair beyond the exit: strips in the grid's boundary planes, issue 13 item 1.)
+INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
     for (uint i = c.begin; i < c.end; ++i) {
 #ifdef LEAF_LINE_SPACE
         uint tri = c.from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
@@ -165,7 +166,7 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c, float t_accept) {
 #endif
         Triangle T = load_triangle(CTX_ARG tri);
         float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
-        if (t <= t_accept) tr.best = closer(tr.best, t, I32(tri), tr.tmin);
+        tr.best = closer(tr.best, t, I32(tri), tr.tmin);
     }
     tr.tests += c.end - c.begin;
     tr.lookups += U32(c.from_shaft);
