@@ -272,3 +272,14 @@ def test_report_renders_in_headless_chromium(written_report, tmp_path):
     # not blank: many distinct colours, real contrast (text, red failed cells, tables)
     assert img.std() > 0.05
     assert len(np.unique((img.reshape(-1, 3) * 255).astype(np.uint8), axis=0)) > 50
+
+
+def test_same_name_scenes_in_two_folders_stay_two_scenes(tmp_path):
+    run = tmp_path / "run"
+    for folder, trace in (("a", 0.010), ("b", 0.020)):
+        rec = fake_record(scene="room", trace=trace)
+        rec["scene"], rec["scene_source"] = "room", f"/data/{folder}/room.ply"
+        rec["key"] = rec["key"].replace("room", f"/data/{folder}/room.ply")
+        store.append_record(run, rec)
+    page = report.write_report(run).read_text()
+    assert "room (/data/a)" in page and "room (/data/b)" in page

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from lsbench.report.charts import chart_build_memory, chart_repeats, chart_speed_accuracy
 from lsbench.report.format import fmt_mib, fmt_num, fmt_pct, fmt_seconds, fmt_si, slug
-from lsbench.report.records import case_label, resolution_label, scene_name, succeeded
+from lsbench.report.records import case_label, label_scenes, resolution_label, scene_name, succeeded
 from lsbench.report.tables import thesis_tables
 from lsbench.results.store import (format_commit, read_run, run_devices, run_settings,
                                    scenario_name)
@@ -229,6 +229,7 @@ def write_report(run_dir, out_dir=None) -> Path:
     if not records:
         what = "results.jsonl is empty" if (run_dir / "results.jsonl").exists() else "no results.jsonl"
         raise EmptyRunError(f"{run_dir}: no case records ({what}); nothing to report")
+    label_scenes(records)
     out_dir = Path(out_dir) if out_dir else run_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     charts_dir = out_dir / "charts"

@@ -30,11 +30,29 @@ def resolution_label(res) -> str:
     return f"{s}³" if s.isdigit() else s
 
 
-def scene_name(rec) -> str:
-    """The scene's file stem, or the built-in name."""
-    s = str(rec.get("scene", "?"))
-    base = os.path.basename(s.rstrip("/")) or s
+def _stem(path: str) -> str:
+    base = os.path.basename(path.rstrip("/")) or path
     return os.path.splitext(base)[0] if "." in base else base
+
+
+def scene_name(rec) -> str:
+    """The scene's file stem or built-in name; the label label_scenes gave it when two scene
+    files share a stem."""
+    return rec.get("scene_label") or _stem(str(rec.get("scene", "?")))
+
+
+def label_scenes(records) -> None:
+    """Two scene files with one name in different folders are two scenes (two cases each): give
+    each record whose stem is shared by another source a label with its folder, so the report's
+    tables and charts keep them apart."""
+    sources: dict[str, set] = {}
+    for r in records:
+        src = str(r.get("scene_source") or r.get("scene", "?"))
+        sources.setdefault(_stem(src), set()).add(src)
+    for r in records:
+        src = str(r.get("scene_source") or r.get("scene", "?"))
+        if len(sources[_stem(src)]) > 1:
+            r["scene_label"] = f"{_stem(src)} ({os.path.dirname(src) or '.'})"
 
 
 def case_label(rec, with_scene=False) -> str:
