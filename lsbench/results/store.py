@@ -252,10 +252,11 @@ class RunResults:
 
     def finish(self, complete: bool) -> str:
         """End the run: compact, or (a complete --fresh run) supersede results.jsonl. Returns
-        one sentence on where the records are."""
+        one sentence on where the records are ("" for a complete run that superseded nothing:
+        the command prints the results path itself)."""
         if not self.fresh:
             compact(self.results)
-            return f"finished cases are kept in {self.results}"
+            return "" if complete else f"finished cases are kept in {self.results}"
         if not complete:
             return (f"{self.results} is unchanged (the --fresh run did not finish); its "
                     f"{self.written} finished cases are in {self.side}")

@@ -217,7 +217,9 @@ def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: 
         except OSError:
             pass
         raise
-    log(results.finish(complete=True))
+    done = results.finish(complete=True)
+    if done:
+        log(done)
     return records
 
 
@@ -248,14 +250,17 @@ def progress_text(rec: dict) -> str:
 
 def summary_table(records: list[dict]) -> str:
     from lsbench.report.format import text_table
+    from lsbench.report.records import label_scenes, scene_name
 
+    records = [dict(r) for r in records]
+    label_scenes(records)  # two files of one name in different folders are two scenes
     head = ["scene", "rays", "structure", "backend", "res", "N", "status", "agreement", "Mrays/s",
             "FPS", "MiB", "build s"]
     rows = []
     for r in records:
         ok = r.get("status") == "ok"
         rows.append([
-            str(r.get("scene")), f"{r.get('rays')}@{r.get('width')}x{r.get('height')}", r.get("structure"),
+            scene_name(r), f"{r.get('rays')}@{r.get('width')}x{r.get('height')}", r.get("structure"),
             r.get("backend"), str(r.get("resolution")), str(r.get("ls_n") or "-"),
             "ok" if ok else "FAILED",
             f"{r['agreement']:.6f}" if ok else "-",
