@@ -2,7 +2,8 @@
 
     device = get_device("glsl" | "opencl")
     built = build(device, "grid", scene, BuildParams(resolution=(64, 64, 64)))
-    hits = trace(built, rays)                # closest hit: prim id + distance per ray
+    hits = trace(built, rays)                # rays.query "closest": prim id + distance per ray;
+                                             # "any": a hit in [tmin, tmax) per ray, or -1
     timing = time_trace(built, rays, 1, 5)   # device time of the trace kernel
 """
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 
 from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
-from .structures.base import BuildParams, BuildResult, Built, GridGeometry, Hits, with_work_counters
+from .structures.base import BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, with_work_counters
 
 BACKENDS = ("glsl", "opencl")
 # Hit id of a ray whose traversal loops the driver cut short (cut_hit, shaders/common/trace.h).
@@ -86,13 +87,14 @@ def _warm_up(device: Device) -> None:
 
 
 def _ray_buffer(rays) -> np.ndarray:
-    """float4 pairs per ray: origin.xyz + tmin, direction.xyz + tmax."""
+    """float4 pairs per ray: origin.xyz + tmin, direction.xyz + tmax (the ray's own; inf where
+    the ray set has none)."""
     n = rays.count
     packed = np.empty((n, 2, 4), np.float32)
     packed[:, 0, :3] = rays.origins
     packed[:, 0, 3] = rays.tmin
     packed[:, 1, :3] = rays.directions
-    packed[:, 1, 3] = np.inf
+    packed[:, 1, 3] = rays.tmax_array
     return packed.ravel()
 
 
@@ -115,9 +117,11 @@ def _release(device, bufs, names):
 
 
 def trace(built: Built, rays, work: bool = False) -> Hits:
-    """Closest hit for every ray; work=True runs the profiling kernel with per-ray counters."""
+    """The hit of every ray for the ray set's query (rays.query: closest, or any hit in
+    [tmin, tmax)); work=True runs the profiling kernel with per-ray counters."""
     d = built.device
-    spec = with_work_counters(built.trace_spec, d) if work else built.trace_spec
+    spec = for_query(built.trace_spec, rays.query)
+    spec = with_work_counters(spec, d) if work else spec
     bufs = _trace_buffers(built, rays, work)
     d.dispatch(spec, rays.count, bufs, built.uniforms)
     d.finish()
@@ -133,10 +137,11 @@ def trace(built: Built, rays, work: bool = False) -> Hits:
 
 
 def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5) -> Timing:
-    """Device time of the plain (counter-free) trace kernel, warm-up launches not counted."""
+    """Device time of the plain (counter-free) trace kernel of the ray set's query, warm-up
+    launches not counted."""
     d = built.device
     bufs = _trace_buffers(built, rays, False)
-    timing = d.time_dispatch(built.trace_spec, rays.count, bufs, built.uniforms, warmup, repeats)
+    timing = d.time_dispatch(for_query(built.trace_spec, rays.query), rays.count, bufs, built.uniforms, warmup, repeats)
     _release(d, bufs, ("rays", "hit_prim", "hit_t"))
     return timing
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 
 from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
-                                   number, writable_folder)
+                                   number, ray_param_text, resolve_ray_params, writable_folder)
 from lsbench.inputs.scenario import LS_MIN_CANDIDATES, LS_N, RUN_RULES
 
 
@@ -73,7 +73,11 @@ def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> Non
                    help="only cells with more candidates get a Line Space")
     p.add_argument("--size", type=checked_text(parse_size), default=size,
                    help=f"image size WxH for camera rays (W*H <= {MAX_IMAGE_RAYS})")
-    p.add_argument("--rays", default="primary", help="ray set name or .npz file with origins/directions")
+    p.add_argument("--rays", default="primary",
+                   help="ray set (primary, adversarial, shadow, ao, diffuse, incoherent) or .npz file "
+                        "with origins/directions")
+    p.add_argument("--ray-param", type=ray_param_text, action="append", default=[], metavar="KEY=VALUE",
+                   help="a parameter of the ray set, VALUE as in TOML (samples=4, light=[0,5,0]); repeatable")
     p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=5, help="timed launches")
     p.add_argument("--warmup", type=RUN_RULES["warmup"].flag, default=1, help="untimed launches before them")
 
@@ -118,4 +122,12 @@ def case_from_args(args, camera=None):
 
     width, height = parse_size(args.size)
     return Case(args.scene, args.structure, args.backend, str(args.resolution), args.ls_n,
-                args.ls_min_candidates, args.rays, width, height, camera)
+                args.ls_min_candidates, args.rays, width, height, camera, ray_params_from_args(args))
+
+
+def ray_params_from_args(args) -> tuple:
+    """The --ray-param values checked by the ray set's rules (one line, exit 2, when one is bad)."""
+    try:
+        return resolve_ray_params("--ray-param: ", args.rays, dict(args.ray_param))
+    except BadValue as exc:
+        raise UsageError(str(exc)) from None

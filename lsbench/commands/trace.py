@@ -55,8 +55,9 @@ def run(args) -> int:
     camera = parse_camera(args.camera) if args.camera else None
     case = case_from_args(args, camera)
     scene = load_scene(args.scene)  # bad input fails here, before anything looks like a result
-    rays = make_rays(args.rays, scene, case.width, case.height, case.camera_object())
-    settings = RunSettings(width=case.width, height=case.height, rays=args.rays, repeats=args.repeats,
+    rays = make_rays(args.rays, scene, case.width, case.height, case.camera_object(), case.ray_params)
+    settings = RunSettings(width=case.width, height=case.height, rays=args.rays,
+                           ray_params=dict(case.ray_params), repeats=args.repeats,
                            warmup=args.warmup, rel_tol=args.rel_tol)
     t0 = time.perf_counter()
     rec = execute(case, settings, record_env(), dump_hits=args.dump_hits, heatmap_dir=args.heatmaps,

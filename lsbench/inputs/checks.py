@@ -201,3 +201,54 @@ def writable_folder(text: str) -> str:
             f"{text} is not writable ({exc.strerror or exc} in {existing}); allowed: a folder that "
             "exists or can be created, and is writable") from None
     return text
+
+
+# ---- Ray-set parameters ------------------------------------------------------------------------
+# What each generated ray set (inputs/rays.py, inputs/secondary.py) takes, with its default: a
+# scenario's `ray_params = { ... }` ([run] or [[cases]]) and `--ray-param KEY=VALUE` are checked
+# against these rules, and a case carries its parameters with the defaults filled in (a default
+# of None is derived from the scene: the shadow rays' light). A ray set not listed takes none.
+SEED = integer(0)
+RAY_PARAMS: dict[str, dict[str, tuple[Rule, Any]]] = {
+    "shadow": {"light": (POINT, None), "light_size": (number(0), 0.0), "samples": (integer(1), 1),
+               "seed": (SEED, 0)},
+    "ao": {"samples": (integer(1), 4), "distance": (number(0, low_open=True), 0.1), "seed": (SEED, 0)},
+    "diffuse": {"seed": (SEED, 0)},
+    "incoherent": {"count": (integer(1), None), "seed": (SEED, 0)},
+}
+
+
+def resolve_ray_params(where: str, rays: str, params: Any) -> tuple:
+    """The parameters of ray set `rays` as a case holds them: `params` (a table) checked key by
+    key against RAY_PARAMS, the defaults filled in, sorted (key, value) pairs with lists as
+    tuples (a case is hashable). `where` names the table in messages ("[run] ")."""
+    if not isinstance(params, dict):
+        raise BadValue(f"{where}ray_params = {show_typed(params)} is not a table "
+                       "{ key = value, ... }")
+    rules = RAY_PARAMS.get(rays, {})
+    if params and not rules:
+        raise BadValue(f"{where}ray_params = {show(params)}: the ray set {show(rays)} takes no "
+                       f"parameters (those that do: {', '.join(sorted(RAY_PARAMS))})")
+    check_keys(f"{where}ray_params for {show(rays)}: ", params, rules)
+    resolved = {}
+    for key, (rule, default) in rules.items():
+        value = rule.check(f"{where}ray_params.{key}", params[key]) if key in params else default
+        if value is not None:
+            resolved[key] = tuple(value) if isinstance(value, list) else value
+    return tuple(sorted(resolved.items()))
+
+
+def ray_param_text(text: str) -> tuple[str, Any]:
+    """argparse `type=` for --ray-param KEY=VALUE: VALUE in TOML syntax (4, 0.25, [0, 5, 0]),
+    as the same key in a scenario's ray_params table would be written."""
+    import tomllib
+
+    key, sep, value = text.partition("=")
+    key = key.strip()
+    if not sep or not key or not value.strip():
+        raise argparse.ArgumentTypeError(f"{text} is not KEY=VALUE (e.g. samples=4)")
+    try:
+        return key, tomllib.loads(f"v = {value}")["v"]
+    except tomllib.TOMLDecodeError:
+        raise argparse.ArgumentTypeError(f"{text}: {value} is not a TOML value "
+                                         "(a number, or a list such as [0, 5, 0])") from None

@@ -1,4 +1,24 @@
-"""RaySet: origins + normalized directions (plain data); generators live below."""
+"""RaySet: origins + normalized directions, a per-ray tmax and the query they ask (plain data);
+the registry of named generators lives below.
+
+Ray sets by name (`--rays NAME`, a scenario's `rays = "NAME"`; their parameters, checked by
+inputs/checks.py RAY_PARAMS, in `ray_params = { ... }` or `--ray-param KEY=VALUE`):
+
+- `primary`     one camera ray through each pixel centre (closest hit).
+- `adversarial` grazing, axis-parallel, boundary and degenerate rays (inputs/adversarial.py).
+- `shadow`      from each primary hit to a light, tmax = the distance to the light point; any hit.
+                light = [x, y, z] (default: above the scene's centre, inputs/secondary.py
+                default_light), light_size = edge of a square quad light (0: a point light),
+                samples = points on it per hit (1), seed (0).
+- `ao`          samples = K cosine-weighted directions per primary hit (4), tmax = distance x the
+                scene diagonal (0.1); any hit. seed (0).
+- `diffuse`     one cosine-weighted bounce per primary hit; closest hit. seed (0).
+- `incoherent`  count rays (default: width x height) with origins uniform in the scene bounds and
+                directions uniform on the sphere; closest hit. seed (0).
+
+The secondary sets (shadow, ao, diffuse) start at Embree's hits of the primary rays of the case's
+image size and camera, offset from the surface (inputs/secondary.py); a primary miss spawns none.
+"""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -8,8 +28,17 @@ from pathlib import Path
 import numpy as np
 
 from lsbench.inputs.adversarial import adversarial_arrays
-from lsbench.inputs.checks import BadValue, check_camera, check_image_size
+from lsbench.inputs.checks import MAX_IMAGE_RAYS, BadValue, check_camera, check_image_size
 from lsbench.inputs.scene import Camera, Scene, arrays_hash
+from lsbench.inputs import secondary
+
+# The query each ray set asks: shadow and AO rays only need "is anything in [tmin, tmax)".
+ANY_HIT_SETS = frozenset({"shadow", "ao"})
+
+
+def query_of(name: str) -> str:
+    """"any" for the any-hit ray sets, else "closest" (ray files and every other set)."""
+    return "any" if name in ANY_HIT_SETS else "closest"
 
 
 @dataclass
@@ -20,6 +49,9 @@ class RaySet:
     width: int = 0  # image size for camera ray sets (0 = not an image)
     height: int = 0
     tmin: float = 0.0
+    tmax: np.ndarray | None = None  # (N,) float32 per-ray end of the query; None: inf for every ray
+    query: str = "closest"  # "closest" hit, or "any" hit in [tmin, tmax) (shadow, AO)
+    params: dict = field(default_factory=dict)  # the generator's parameters, defaults filled in
     _hash: str | None = field(default=None, repr=False)
 
     @property
@@ -27,9 +59,21 @@ class RaySet:
         return int(self.origins.shape[0])
 
     @property
+    def tmax_array(self) -> np.ndarray:
+        """(N,) float32 tmax of every ray (inf where the set has none)."""
+        if self.tmax is None:
+            return np.full(self.count, np.inf, np.float32)
+        return np.asarray(self.tmax, np.float32)
+
+    @property
     def content_hash(self) -> str:
+        """Hash of the float32 origins and directions, and of tmax when the set has one (sets
+        without keep the hash they had before tmax existed)."""
         if self._hash is None:
-            self._hash = arrays_hash(np.asarray(self.origins, np.float32), np.asarray(self.directions, np.float32))
+            arrays = [np.asarray(self.origins, np.float32), np.asarray(self.directions, np.float32)]
+            if self.tmax is not None:
+                arrays.append(np.asarray(self.tmax, np.float32))
+            self._hash = arrays_hash(*arrays)
         return self._hash
 
 
@@ -129,7 +173,7 @@ def load_rays_file(path: str) -> RaySet:
                   directions=(directions / length).astype(np.float32))
 
 
-# name -> generator(scene, width, height, camera); other ray sets register here
+# name -> generator(scene, width, height, camera, **params); other ray sets register here
 RAY_SETS: dict[str, Callable[..., RaySet]] = {"primary": primary_rays}
 
 
@@ -146,12 +190,56 @@ def _adversarial(scene: Scene, width: int, height: int, camera: Camera | None = 
 RAY_SETS["adversarial"] = _adversarial
 
 
+def _generated(name: str, arrays, params: dict) -> RaySet:
+    origins, directions, tmax = arrays
+    return RaySet(name=name, origins=np.ascontiguousarray(origins, np.float32),
+                  directions=np.ascontiguousarray(directions, np.float32),
+                  tmax=None if tmax is None else np.ascontiguousarray(tmax, np.float32),
+                  query=query_of(name), params=dict(params))
+
+
+def _secondary(name: str, make_arrays):
+    """A generator of rays that start at the primary rays' hits (inputs/secondary.py)."""
+    def generate(scene: Scene, width: int, height: int, camera: Camera | None = None, **params) -> RaySet:
+        primary = primary_rays(scene, width, height, camera)
+        try:
+            return _generated(name, make_arrays(scene, primary, **params), params)
+        except secondary.SecondaryError as exc:
+            raise RayError(f"{name} rays: {exc}") from None
+    generate.__doc__ = make_arrays.__doc__
+    return generate
+
+
+def _incoherent(scene: Scene, width: int, height: int, camera: Camera | None = None, **params) -> RaySet:
+    count = params.get("count", width * height)  # the camera is not used
+    if count > MAX_IMAGE_RAYS:
+        raise RayError(f"incoherent rays: count = {count} is over the limit of {MAX_IMAGE_RAYS} rays")
+    if count < 1:
+        raise RayError(f"incoherent rays: count = {count} must be at least 1")
+    return _generated("incoherent", secondary.incoherent_arrays(scene, count=count, seed=params.get("seed", 0)),
+                      dict(params, count=count))
+
+
+RAY_SETS.update({"shadow": _secondary("shadow", secondary.shadow_arrays),
+                 "ao": _secondary("ao", secondary.ao_arrays),
+                 "diffuse": _secondary("diffuse", secondary.diffuse_arrays),
+                 "incoherent": _incoherent})
+
+
 def make_rays(name_or_path: str, scene: Scene, width: int, height: int,
-              camera: Camera | None = None) -> RaySet:
-    """A registered ray set by name, or a `.npz` ray file."""
+              camera: Camera | None = None, params=()) -> RaySet:
+    """A registered ray set by name with its parameters (a dict or a case's (key, value) pairs,
+    checked by inputs/checks.py resolve_ray_params), or a `.npz` ray file."""
+    params = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dict(params).items()}
     generator = RAY_SETS.get(name_or_path)
     if generator is not None:
-        return generator(scene, width, height, camera)
+        if name_or_path in ("primary", "adversarial"):
+            if params:
+                raise RayError(f"the ray set {name_or_path!r} takes no parameters, got {params}")
+            return generator(scene, width, height, camera)
+        return generator(scene, width, height, camera, **params)
+    if params:
+        raise RayError(f"a ray file takes no parameters, got {params}")
     if name_or_path.lower().endswith(".npz"):
         return load_rays_file(name_or_path)
     raise RayError(f"unknown ray set {name_or_path!r}: use one of "

@@ -6,7 +6,8 @@
     height = 64
     gpu_width = 1920         # image size used instead when the devices are GPUs
     gpu_height = 1080
-    rays = "primary"         # ray set name or .npz path
+    rays = "primary"         # ray set name or .npz path (inputs/rays.py lists the sets)
+    ray_params = { seed = 1 } # the ray set's parameters (inputs/checks.py RAY_PARAMS)
     repeats = 5              # timed launches after `warmup` untimed ones
     warmup = 1
     rel_tol = 1e-4           # distance tolerance of agree and tie (relative)
@@ -22,6 +23,9 @@
     resolutions = [64, "64x32x16"]
     ls_n = [0]               # Line Space N (0 = none)
     ls_min_candidates = 0    # or a list: only cells with more candidates get a Line Space
+    rays = ["shadow", "ao"]  # optional: this block's ray sets instead of [run]'s
+    ray_params = { samples = 2 }  # optional: their parameters (default: [run]'s when the block
+                             # names no rays, else none); every listed set must take each key
     camera = { eye = [1100, 180, -40], target = [-900, 420, 40], up = [0, 1, 0], fov = 65 }
                              # optional; default: the scene's own camera or one from its bounds
 
@@ -34,8 +38,9 @@ table) is an error with a did-you-mean, as is a value of the wrong TOML type (`r
 `backends = []`, a camera fov of 180). Key by key: width/height/gpu_* integers >= 1 with
 width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; max_unexplained an
 integer >= 0; min_agreement in [0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
-structures, backends, resolutions, ls_n, ls_min_candidates one value or a non-empty list;
-camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees.
+structures, backends, resolutions, ls_n, ls_min_candidates, rays one value or a non-empty list;
+camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees; ray_params a table whose keys
+the ray set takes, each value by its rule (e.g. samples an integer >= 1, light 3 finite numbers).
 """
 from __future__ import annotations
 
@@ -46,7 +51,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lsbench.inputs.checks import (FLAG, RESOLUTION, TEXT, BadValue, Rule, check_camera, check_image_size,
-                                   check_keys, check_list, integer, number, one_of, show_typed)
+                                   check_keys, check_list, integer, number, one_of, resolve_ray_params,
+                                   show_typed)
 from lsbench.inputs.rays import RAY_SETS
 from lsbench.paths import scenes_dir, shipped_scenario
 
@@ -67,6 +73,7 @@ class RunSettings:
     gpu_width: int | None = None
     gpu_height: int | None = None
     rays: str = "primary"
+    ray_params: dict = field(default_factory=dict)  # the ray set's parameters (checks.RAY_PARAMS)
     repeats: int = 5
     warmup: int = 1
     rel_tol: float = 1e-4
@@ -98,6 +105,12 @@ def _exact(value) -> str:
     return text[:-2] if text.endswith(".0") else text
 
 
+def _param_text(value) -> str:
+    if isinstance(value, (tuple, list)):
+        return "[" + ",".join(_exact(v) for v in value) + "]"
+    return str(value) if isinstance(value, int) else _exact(value)
+
+
 @dataclass(frozen=True)
 class Case:
     scene: str  # built-in name or path
@@ -110,6 +123,14 @@ class Case:
     width: int = 64
     height: int = 64
     camera: tuple | None = None  # ((eye), (target), (up), fov_deg) or None for the scene default
+    ray_params: tuple = ()  # sorted (key, value) pairs, defaults filled in (checks.resolve_ray_params)
+
+    @property
+    def query(self) -> str:
+        """What its rays ask: "any" hit (shadow, ao) or the "closest" one (inputs/rays.py)."""
+        from lsbench.inputs.rays import query_of
+
+        return query_of(self.rays)
 
     def build_params(self):
         """The BuildParams this case builds with, as the recipes take them: a Line Space
@@ -128,7 +149,8 @@ class Case:
         """Identity of a case across runs and commits (what resume and compare match on): the
         scene and ray file by path (never only the file name), the ray set, image size and
         camera, structure, backend and every build parameter as built (resolution "64" and
-        "64x64x64" are one case). The files' contents are the records' scene_hash / rays_hash."""
+        "64x64x64" are one case), and a generated ray set's parameters with their defaults filled
+        in ("shadow(samples=1,seed=0)"). The files' contents are the records' scene_hash / rays_hash."""
         from lsbench.backends.structures.base import format_resolution
 
         try:
@@ -136,7 +158,10 @@ class Case:
             res, n, k = format_resolution(params.resolution), params.ls_n, params.ls_min_candidates
         except ValueError:  # a resolution or structure that does not parse: the case fails when run
             res, n, k = self.resolution, self.ls_n, self.ls_min_candidates
-        rays = f"{input_label(self.rays)}@{self.width}x{self.height}"
+        rays = input_label(self.rays)
+        if self.ray_params:
+            rays += "(" + ",".join(f"{k}={_param_text(v)}" for k, v in self.ray_params) + ")"
+        rays += f"@{self.width}x{self.height}"
         if self.camera is not None:
             eye, target, up, fov = self.camera
             rays += "@cam(" + ",".join(_exact(v) for v in (*eye, *target, *up, fov)) + ")"
@@ -167,6 +192,8 @@ RUN_RULES: dict[str, Rule] = {
     "rays": Rule(f"a ray set ({', '.join(sorted(RAY_SETS))}) or a path to a .npz file",
                  lambda v: isinstance(v, str) and (v in RAY_SETS or v.lower().endswith(".npz")),
                  names=tuple(sorted(RAY_SETS)), noun="ray set"),
+    # the table's keys and values are checked against the ray set's own rules (checks.RAY_PARAMS)
+    "ray_params": Rule("a table { key = value, ... }", lambda v: isinstance(v, dict)),
     "repeats": integer(1), "warmup": integer(0),
     "rel_tol": number(0), "max_unexplained": integer(0), "min_agreement": number(0, 1),
     "timeout_seconds": number(0, low_open=True), "memory_budget_mb": number(0, low_open=True),
@@ -176,7 +203,7 @@ RUN_RULES: dict[str, Rule] = {
 # What each key of a [[cases]] block allows: one value or a non-empty list of them (camera
 # aside). Structures and backends come from their catalogues, so these are built on use.
 REQUIRED_CASE_KEYS = ("scenes", "structures", "resolutions")
-CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "camera")
+CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "camera", "rays", "ray_params")
 LS_N = integer(0)  # 0 = the structure's own default (a Line Space structure builds N = 1)
 LS_MIN_CANDIDATES = integer(0)
 CAMERA_KEYS = ("eye", "target", "up", "fov")
@@ -205,6 +232,7 @@ def _settings(run, where: str) -> RunSettings:
     for key, value in run.items():
         if key in RUN_RULES:
             RUN_RULES[key].check(f"{where}{key}", value)
+    resolve_ray_params(where, run.get("rays", "primary"), run.get("ray_params", {}))
     settings = RunSettings(**run)
     if (settings.gpu_width is None) != (settings.gpu_height is None):
         raise BadValue(f"{where}gpu_width and gpu_height go together: give both or neither")
@@ -234,17 +262,24 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
     ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N)  # N for Line Space structures
     ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES)
     camera = _camera(block["camera"], where) if "camera" in block else None
+    if "rays" in block:
+        ray_sets = check_list(f"{where}rays", block["rays"], RUN_RULES["rays"])
+        params = block.get("ray_params", {})
+    else:
+        ray_sets, params = [settings.rays], block.get("ray_params", settings.ray_params)
+    ray_params = {name: resolve_ray_params(where, name, params) for name in ray_sets}
     cases = []
     for scene in scenes:
-        for s in names:
-            for b in backs:
-                for r in resolutions:
-                    # A Line Space N only means something for Line Space structures.
-                    line_space = structure_info(s).line_space
-                    for n in (ns if line_space else [0]):
-                        for k in (ks if line_space else [0]):
-                            cases.append(Case(scene, s, b, str(r), n, k, settings.rays, width, height,
-                                              camera))
+        for rays in ray_sets:
+            for s in names:
+                for b in backs:
+                    for r in resolutions:
+                        # A Line Space N only means something for Line Space structures.
+                        line_space = structure_info(s).line_space
+                        for n in (ns if line_space else [0]):
+                            for k in (ks if line_space else [0]):
+                                cases.append(Case(scene, s, b, str(r), n, k, rays, width, height,
+                                                  camera, ray_params[rays]))
     return cases
 
 

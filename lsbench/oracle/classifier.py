@@ -37,6 +37,11 @@ The rules (they were written for the adversarial rays, lsbench/inputs/adversaria
   abs_tol + rel_tol * t + pos_eps) reported at its float64 distance (same tolerance); or an
   ambiguous triangle reported no farther than t* (+ tolerance) at a point that lies within
   pos_eps of that triangle.
+- Any-hit query (rays.query "any", verify.py): the backend's answer is acceptable when it says
+  "not occluded" and t* is not before tmax (- tolerance), or names a triangle that the ray meets
+  at the reported distance before tmax (+ tolerance): robustly hit there, or ambiguous with the
+  reported point within pos_eps of it; it need not be the nearest. Embree's answer is its closest
+  hit, judged as above (its occluded flag follows from it).
 
 Cost: only disagreeing rays are re-evaluated, each against the triangles whose bounding boxes
 come within pos_eps of it (one vectorized slab test over the scene), at most
@@ -201,6 +206,18 @@ class _RayEval:
         return bool(self.hit[prim]) and abs(self.t[prim] - self.t_star) <= self.tol(self.t_star) \
             and abs(t - self.t[prim]) <= self.tol(t)
 
+    def acceptable_any(self, prim: int, t: float, tmax: float) -> bool:
+        """An any-hit answer (module docstring): a hit the ray really makes before tmax, or no
+        hit where no robust one lies before tmax."""
+        if prim < 0:
+            return self.t_star >= tmax - self.tol(tmax)
+        if not np.isfinite(t) or t > tmax + self.tol(tmax):
+            return False
+        if self.amb[prim]:
+            on_tri = _point_triangle_dist((self.o + t * self.d)[None], self.tris[prim:prim + 1])[0]
+            return on_tri <= self.eps_of(t)
+        return bool(self.hit[prim]) and abs(t - self.t[prim]) <= self.tol(t)
+
     def reason(self, prims) -> str:
         """Class of a disagreement both of whose answers are acceptable (module docstring)."""
         for p in prims:
@@ -229,13 +246,17 @@ def _near_ray(lo, hi, o, d, pad: float, length: float) -> np.ndarray:
 def classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_distances,
                            rel_tol: float = 1e-4, abs_tol: float | None = None,
                            max_rays: int = MAX_CLASSIFIED_RAYS) -> dict:
-    """One class per ray (module docstring) for a backend's answers against Embree's.
+    """One class per ray (module docstring) for a backend's answers against Embree's, for the
+    ray set's query (rays.query, rays.tmax).
     Returns {'labels': object array, 'counts': {class: n} (non-zero only), 'unexplained': ray ids
     (unclassified included), 'capped': whether some disagreements were left unclassified}."""
     lo, hi = scene.bounds
     extent = float(np.linalg.norm(hi.astype(np.float64) - lo))
     abs_tol = resolve_abs_tol(abs_tol, extent)
-    cat = verify_categories(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=rel_tol, abs_tol=abs_tol)
+    any_hit = rays.query == "any"
+    tmax = rays.tmax_array
+    cat = verify_categories(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=rel_tol, abs_tol=abs_tol,
+                            query=rays.query, tmax=tmax, tmin=rays.tmin)
     labels = np.where(cat == AGREE, "agree", np.where(cat == TIE, "tie", "")).astype(object)
     todo = np.flatnonzero(labels == "")
     labels[todo[max_rays:]] = "unclassified"
@@ -260,7 +281,11 @@ def classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_d
                 return False  # a triangle nowhere near the ray
             return ev.acceptable(local.get(prim, -1), dist)
 
-        ok_b = acceptable(int(p[i]), float(t[i]))
+        if any_hit:
+            ok_b = (int(p[i]) < 0 or int(p[i]) in local) and ev.acceptable_any(local.get(int(p[i]), -1), float(t[i]),
+                                                                                float(tmax[i]))
+        else:
+            ok_b = acceptable(int(p[i]), float(t[i]))
         ok_e = acceptable(int(r[i]), float(tr[i]))
         if ok_b and ok_e:
             labels[i] = ev.reason([local.get(int(x), -1) for x in (p[i], r[i])])
@@ -290,7 +315,8 @@ def judge_hits(scene, rays, prim_ids, distances, ref_prim_ids, ref_distances,
     the float64 classes of its disagreements."""
     lo, hi = scene.bounds
     extent = float(np.linalg.norm(hi.astype(np.float64) - lo))
-    acc = compare(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=rel_tol, scene_extent=extent)
+    acc = compare(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=rel_tol, scene_extent=extent,
+                  query=rays.query, tmax=rays.tmax_array, tmin=rays.tmin)
     t0 = time.perf_counter()
     out = classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_distances,
                                  rel_tol=rel_tol, abs_tol=acc.abs_tol, max_rays=max_rays)

@@ -20,6 +20,16 @@ Distance tolerance (agree and tie): |t - t_ref| <= abs_tol + rel_tol * max(t_ref
 defaults to 1e-5 * scene_extent (the scene bounding-box diagonal) when that is given, else 1e-6.
 `missed`, `extra`, `wrong` and `distance` are the disagreements; lsbench.oracle.classifier
 re-evaluates each in float64 and says which of them float32 or Embree explain.
+
+Any-hit query (query="any": shadow and ambient-occlusion rays, per-ray `tmax`): the answer is
+only whether something lies in [tmin, tmax). embreex's OCCLUDED query is broken (it returns -1
+for hits), so Embree's answer is derived from its closest hit: occluded iff it hits at t < tmax
+(its t is already >= tmin, oracle/embree.py). A ray whose occluded flag is the same agrees
+(`agree`), whichever primitive either side names; the backend occluded and Embree not is `extra`,
+the reverse `missed`; such a disagreement is a `tie` when the hit it hangs on (the backend's for
+`extra`, Embree's for `missed`) lies within the distance tolerance of tmin or tmax, where either
+answer is right up to rounding. There is no `wrong` or `distance`, and no |dt| (0.0).
+A closest-hit query with a finite tmax takes Embree's hits at t >= tmax as misses.
 """
 from __future__ import annotations
 
@@ -29,6 +39,7 @@ import numpy as np
 
 AGREE, TIE, MISSED, EXTRA, WRONG, DISTANCE = 0, 1, 2, 3, 4, 5
 CATEGORY_NAMES = ("agree", "tie", "missed", "extra", "wrong", "distance")
+QUERIES = ("closest", "any")
 
 
 @dataclass
@@ -87,8 +98,23 @@ def _inputs(prim_ids, distances, ref_prim_ids, ref_distances):
     return p, t, r, tr
 
 
-def _categories(p, t, r, tr, rel_tol: float, abs_tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Category code per ray, and |dt| (NaN where not both hit)."""
+def _tmax_array(tmax, n: int) -> np.ndarray:
+    """Per-ray tmax as float64 (None: inf)."""
+    if tmax is None:
+        return np.full(n, np.inf)
+    out = np.broadcast_to(np.asarray(tmax, np.float64), (n,))
+    return np.array(out)
+
+
+def _categories(p, t, r, tr, rel_tol: float, abs_tol: float, query: str = "closest", tmax=None,
+                tmin: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Category code per ray, and |dt| (NaN where not both hit, and for an any-hit query)."""
+    if query not in QUERIES:
+        raise ValueError(f"unknown query {query!r}; choose one of {', '.join(QUERIES)}")
+    tmax = _tmax_array(tmax, p.shape[0])
+    if query == "any":
+        return _any_categories(p, t, r, tr, rel_tol, abs_tol, tmax, tmin), np.full(p.shape, np.nan)
+    r = np.where(tr < tmax, r, -1)  # Embree traces to infinity; past tmax is no hit of this query
     hit, ref_hit = p >= 0, r >= 0
     both = hit & ref_hit
     with np.errstate(invalid="ignore"):
@@ -107,21 +133,46 @@ def _categories(p, t, r, tr, rel_tol: float, abs_tol: float) -> tuple[np.ndarray
     return cat, dt
 
 
+def embree_occluded(ref_prim_ids, ref_distances, tmax) -> np.ndarray:
+    """Embree's any-hit answer from its closest hit (OCCLUDED is broken in embreex): a hit
+    before tmax. Its closest hit already lies at or past tmin (oracle/embree.py)."""
+    r = _prim_array(ref_prim_ids)
+    return (r >= 0) & (np.asarray(ref_distances, np.float64) < _tmax_array(tmax, r.shape[0]))
+
+
+def _any_categories(p, t, r, tr, rel_tol: float, abs_tol: float, tmax: np.ndarray, tmin: float) -> np.ndarray:
+    """AGREE (same occluded flag), MISSED, EXTRA or TIE (the disagreement's hit within the
+    tolerance of tmin or tmax) per ray of an any-hit query."""
+    occluded, ref_occluded = p >= 0, embree_occluded(r, tr, tmax)
+    cat = np.full(p.shape, AGREE, dtype=np.int8)
+    cat[ref_occluded & ~occluded] = MISSED
+    cat[occluded & ~ref_occluded] = EXTRA
+    t_hit = np.where(occluded, t, tr)  # the hit the disagreement hangs on
+    with np.errstate(invalid="ignore"):
+        near_end = ((np.abs(t_hit - tmax) <= abs_tol + rel_tol * np.abs(tmax))
+                    | (np.abs(t_hit - tmin) <= abs_tol + rel_tol * abs(tmin)))
+    cat[(cat != AGREE) & near_end] = TIE  # NaN or inf distances are never near a finite end
+    return cat
+
+
 def classify(
-    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None
+    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None,
+    query: str = "closest", tmax=None, tmin: float = 0.0,
 ) -> np.ndarray:
-    """int8 category per ray: AGREE, TIE, MISSED, EXTRA, WRONG, DISTANCE (module docstring)."""
+    """int8 category per ray: AGREE, TIE, MISSED, EXTRA, WRONG, DISTANCE (module docstring).
+    query "any": the any-hit categories against Embree's closest hits and per-ray tmax."""
     p, t, r, tr = _inputs(prim_ids, distances, ref_prim_ids, ref_distances)
-    return _categories(p, t, r, tr, float(rel_tol), resolve_abs_tol(abs_tol, scene_extent))[0]
+    return _categories(p, t, r, tr, float(rel_tol), resolve_abs_tol(abs_tol, scene_extent), query, tmax, tmin)[0]
 
 
 def compare(
-    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None
+    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None,
+    query: str = "closest", tmax=None, tmin: float = 0.0,
 ) -> Accuracy:
-    """Accuracy of (prim_ids, distances) against the reference (Embree) arrays."""
+    """Accuracy of (prim_ids, distances) against the reference (Embree) arrays, for the query."""
     p, t, r, tr = _inputs(prim_ids, distances, ref_prim_ids, ref_distances)
     abs_tol = resolve_abs_tol(abs_tol, scene_extent)
-    cat, dt = _categories(p, t, r, tr, float(rel_tol), abs_tol)
+    cat, dt = _categories(p, t, r, tr, float(rel_tol), abs_tol, query, tmax, tmin)
     counts = np.bincount(cat, minlength=len(CATEGORY_NAMES))
     n = int(p.shape[0])
 
@@ -145,9 +196,11 @@ def compare(
 
 
 def disagreement_indices(
-    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None
+    prim_ids, distances, ref_prim_ids, ref_distances, rel_tol=1e-4, abs_tol=None, scene_extent=None,
+    query: str = "closest", tmax=None, tmin: float = 0.0,
 ) -> np.ndarray:
     """Sorted int64 indices of the disagreeing rays (missed, extra, wrong, distance);
     `classify()` tells which category each one is."""
-    cat = classify(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol, abs_tol, scene_extent)
+    cat = classify(prim_ids, distances, ref_prim_ids, ref_distances, rel_tol, abs_tol, scene_extent,
+                   query, tmax, tmin)
     return np.flatnonzero(cat >= MISSED).astype(np.int64)

@@ -19,8 +19,9 @@ from lsbench.oracle.classifier import Classification
 from lsbench.oracle.verify import Accuracy
 
 # 2: the first defined record (resolution_x/y/z, per-ray work means, settings, diff_hash);
-# records without `schema_version` are older and are never reused.
-SCHEMA_VERSION = 2
+# 3: ray_params and query (the workloads of issue 14); records without `schema_version` are
+# older and are never reused.
+SCHEMA_VERSION = 3
 
 
 @dataclass
@@ -38,6 +39,8 @@ class Record:
     ls_n: int
     ls_min_candidates: int
     rays: str
+    ray_params: dict
+    query: str
     width: int
     height: int
     camera: dict | None = None
@@ -130,8 +133,8 @@ REQUIRED_FIELDS = ("key", "status")
 # (failed cases are retried), and a record with heatmaps serves a run without them (one without
 # is redone when they are wanted). Any other setting, including one added later, counts as
 # changing results.
-NOT_RESULT_SETTINGS = frozenset({"width", "height", "gpu_width", "gpu_height", "rays", "min_agreement",
-                                 "max_unexplained", "timeout_seconds", "memory_budget_mb", "heatmaps"})
+NOT_RESULT_SETTINGS = frozenset({"width", "height", "gpu_width", "gpu_height", "rays", "ray_params",
+                                 "min_agreement", "max_unexplained", "timeout_seconds", "memory_budget_mb", "heatmaps"})
 
 
 def result_settings(settings) -> dict:

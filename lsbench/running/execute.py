@@ -37,6 +37,8 @@ def new_record(case: Case, settings: RunSettings, env: dict | None = None, input
                  scene_source=case.scene, structure=case.structure, backend=case.backend,
                  resolution=str(case.resolution), resolution_x=resolution[0], resolution_y=resolution[1],
                  resolution_z=resolution[2], ls_n=n, ls_min_candidates=k, rays=case.rays,
+                 ray_params={key: list(v) if isinstance(v, tuple) else v for key, v in case.ray_params},
+                 query=case.query,
                  width=case.width, height=case.height, camera=camera, settings=result_settings(settings))
     rec.update(**(env or {}))
     rec.update(**(inputs or {}))
@@ -87,7 +89,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     if scene is None:
         scene = load_scene(case.scene)
     if rays is None:
-        rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object())
+        rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object(), case.ray_params)
     rec = new_record(case, settings, env, case_inputs(scene, rays))
     ref_prim, ref_t = embree_closest(scene, rays)
     if settings.embree_timing:

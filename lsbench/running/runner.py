@@ -163,14 +163,16 @@ def plan_cases(scenario: Scenario, env: dict, devices: dict[str, dict]) -> list[
     for spec in dict.fromkeys(c.scene for c in scenario.cases):
         scene = load_scene(spec)
         for c in scenario.cases:
-            ray_id = (spec, c.rays, c.width, c.height, c.camera)
+            ray_id = (spec, c.rays, c.ray_params, c.width, c.height, c.camera)
             if c.scene == spec and ray_id not in inputs:
-                inputs[ray_id] = case_inputs(scene, make_rays(c.rays, scene, c.width, c.height, c.camera_object()))
+                inputs[ray_id] = case_inputs(scene, make_rays(c.rays, scene, c.width, c.height, c.camera_object(),
+                                                              c.ray_params))
     settings = result_settings(scenario.settings)
     plans = []
     for c in scenario.cases:
         device = devices.get(c.backend) or {}
-        expected = dict(inputs[(c.scene, c.rays, c.width, c.height, c.camera)], **env, settings=settings,
+        expected = dict(inputs[(c.scene, c.rays, c.ray_params, c.width, c.height, c.camera)], **env,
+                        settings=settings,
                         **{f: device.get(f) for f in ("device", "driver", "backend_version")})
         plans.append(CasePlan(c, expected))
     return plans

@@ -122,6 +122,18 @@ class Hits:
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
 
 
+QUERIES = ("closest", "any")
+
+
+def for_query(spec: KernelSpec, query: str) -> KernelSpec:
+    """The traversal kernel that answers `query` (the same KERNEL_<name>, the same walk):
+    "closest" is the kernel as built, "any" compiles QUERY_ANY in (shaders/common/trace.h: the
+    first hit in [tmin, tmax) ends the candidate loop and the walk)."""
+    if query not in QUERIES:
+        raise ValueError(f"unknown query {query!r}; choose one of {', '.join(QUERIES)}")
+    return spec.with_defines(QUERY_ANY=1) if query == "any" else spec
+
+
 def with_work_counters(spec: KernelSpec, device: Device | None = None) -> KernelSpec:
     """The profiling variant of a traversal kernel (the same KERNEL_<name>): COUNT_WORK compiled
     in, a work buffer added, and the device clock where `device` has one (Device.clock_defines;

@@ -7,7 +7,10 @@
 // Buffers: rays (float4 pairs: origin.xyz + tmin, direction.xyz + tmax), hit_prim (int, -1 =
 // miss), hit_t (float), voxel_tris (uint: the cells' plain candidate lists); work (uint4 per ray)
 // in COUNT_WORK builds. Feature defines (set by the KernelSpec): LEAF_LINE_SPACE (cells may hold
-// a Line Space: svo-ls, esvo-ls, grid-ls), COUNT_WORK (profiling counters).
+// a Line Space: svo-ls, esvo-ls, grid-ls), COUNT_WORK (profiling counters), QUERY_ANY (the any-hit
+// query of shadow and ambient-occlusion rays: is anything in [tmin, tmax)? The first hit found
+// ends the candidate loop and the walk, so hit_prim/hit_t name *a* hit in that range, not the
+// closest one; backends/structures/base.py: for_query).
 
 STRUCT(Ray) { float3 o; float tmin; float3 d; float tmax; };
 
@@ -85,8 +88,13 @@ INLINE Trace trace_start(Ray r) {
 }
 
 // The walk may stop: the closest hit lies before t (the current cell's exit), so no later cell
-// can hold a nearer one.
+// can hold a nearer one. An any-hit query stops at the first hit: closer() took it only inside
+// [tmin, tmax), and any such hit answers "occluded".
+#ifdef QUERY_ANY
+INLINE int trace_done(Trace tr, float t) { return tr.best.prim >= 0 ? 1 : 0; }
+#else
 INLINE int trace_done(Trace tr, float t) { return (tr.best.prim >= 0 && tr.best.t <= t) ? 1 : 0; }
+#endif
 
 // The hit to store: the counters written first (COUNT_WORK), then the loop probe (scene.h).
 INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
@@ -157,8 +165,10 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
 // spans several cells is beaten by any nearer one in the cells still to come. (A hit past the exit
 // used to be thrown away, so a triangle listed in no later cell was lost when float rounding put
 // its t a hair beyond the exit: strips in the grid's boundary planes, issue 13 item 1.)
+// QUERY_ANY: the loop ends at the first hit in [tmin, tmax) (trace_done then ends the walk).
 INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
-    for (uint i = c.begin; i < c.end; ++i) {
+    uint i = c.begin;
+    for (; i < c.end; ++i) {
 #ifdef LEAF_LINE_SPACE
         uint tri = c.from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
 #else
@@ -167,8 +177,11 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
         Triangle T = load_triangle(CTX_ARG tri);
         float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
         tr.best = closer(tr.best, t, I32(tri), tr.tmin);
+#ifdef QUERY_ANY
+        if (tr.best.prim >= 0) { ++i; break; }
+#endif
     }
-    tr.tests += c.end - c.begin;
+    tr.tests += i - c.begin;
     tr.lookups += U32(c.from_shaft);
     return tr;
 }
