@@ -69,7 +69,7 @@ BAD_SCENARIOS = {
     "heatmaps-int": (scenario_text(run="heatmaps = 1"), ["[run] heatmaps = 1", "is not true or false"]),
     "rays-typo": (scenario_text(run='rays = "primery"'),
                   ['[run] rays = "primery" is an unknown ray set', 'did you mean "primary"',
-                   "allowed: a ray set (adversarial, primary) or a path to a .npz file"]),
+                   "allowed: a ray set (adversarial, ao, diffuse, incoherent, primary, shadow) or a path to a .npz file"]),
     "image-too-large": (scenario_text().replace("width = 8\nheight = 8", "width = 100000\nheight = 100000"),
                         ["[run] width x height = 100000x100000", "over the limit of 67108864"]),
     "gpu-width-alone": (scenario_text(run="gpu_width = 1920"), ["gpu_width and gpu_height", "both or neither"]),

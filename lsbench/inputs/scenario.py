@@ -73,7 +73,7 @@ class RunSettings:
     gpu_width: int | None = None
     gpu_height: int | None = None
     rays: str = "primary"
-    ray_params: dict = field(default_factory=dict)  # the ray set's parameters (checks.RAY_PARAMS)
+    ray_params: dict | None = None  # the ray set's parameters (checks.RAY_PARAMS); None: the defaults
     repeats: int = 5
     warmup: int = 1
     rel_tol: float = 1e-4
@@ -266,7 +266,7 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
         ray_sets = check_list(f"{where}rays", block["rays"], RUN_RULES["rays"])
         params = block.get("ray_params", {})
     else:
-        ray_sets, params = [settings.rays], block.get("ray_params", settings.ray_params)
+        ray_sets, params = [settings.rays], block.get("ray_params", settings.ray_params or {})
     ray_params = {name: resolve_ray_params(where, name, params) for name in ray_sets}
     cases = []
     for scene in scenes:

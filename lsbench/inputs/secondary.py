@@ -11,7 +11,12 @@ Robust Method for Avoiding Self-Intersection" (Ray Tracing Gems, ch. 6): each co
 number of float32 ulps proportional to the geometric normal's component, so the offset scales with
 the coordinates' own rounding error wherever the point lies; near zero, where ulps vanish, a fixed
 small step is taken instead. The normal is the geometric one, turned towards the side the primary
-ray came from: every secondary ray leaves on that side.
+ray came from: every secondary ray leaves on that side. The origin then moves as far again along
+the secondary ray's own direction (`leave_surface`): a hit on a concave edge lies on two faces
+(the Cornell box's wall meets its ceiling: a 24x24 image has a row of such hits), and the normal
+step of one face leaves the point on the other one, where the ray would start with a hit at t = 0.
+(Checked at 96x96 on cornell, spheres and atrium: no shadow, AO or diffuse ray has an Embree hit
+closer than 1e-5 x the scene diagonal, and none hits its own triangle.)
 
 Directions on a hemisphere are cosine-weighted (Malley's method: uniform on the unit disk,
 projected up; pdf cos(theta) / pi, Pharr, Jakob & Humphreys, PBR 4th ed. 13.6) in an orthonormal
@@ -47,6 +52,23 @@ def offset_origin(p: np.ndarray, n: np.ndarray) -> np.ndarray:
     return np.where(near_zero, p + np.float32(OFFSET_FLOAT_SCALE) * n32, stepped).astype(np.float32)
 
 
+def leave_surface(p: np.ndarray, n: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The float32 origin of a ray in direction `d` from surface points `p` with unit normals `n`
+    (on d's side): offset along the normal (Wächter & Binder), then moved along d itself by as far
+    as that offset went (in real space: an ulp step along d would skew it by the axes' ulp sizes
+    and could cross back behind the surface). Every coordinate d moves along moves at least one
+    ulp that way, or a small component would round back onto a face the point lies on."""
+    p = np.asarray(p, np.float32)
+    d = np.asarray(d, np.float64)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    lifted = offset_origin(p, n)
+    step = np.linalg.norm(lifted.astype(np.float64) - p, axis=1, keepdims=True)
+    moved = (lifted + step * d).astype(np.float32)
+    stuck = (moved == lifted) & (d != 0)
+    towards = np.where(d > 0, np.float32(np.inf), np.float32(-np.inf))
+    return np.where(stuck, np.nextafter(lifted, towards), moved).astype(np.float32)
+
+
 def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors (N, 3) that with unit `n` make a right-handed orthonormal basis, without a
     branch on the normal's direction (Duff et al., JCGT 6(1), 2017, Listing 3)."""
@@ -77,8 +99,8 @@ def unit_directions(d: np.ndarray) -> np.ndarray:
 
 class SurfacePoints:
     """Where the primary rays hit (Embree's answer), in float64: triangle id, point on the
-    triangle's plane, geometric normal facing the incoming ray, and the offset float32 origin
-    every secondary ray from that point starts at."""
+    triangle's plane and geometric normal facing the incoming ray, and the offset float32 origins
+    of the secondary rays that leave them."""
 
     def __init__(self, scene, primary) -> None:
         from lsbench.oracle.embree import embree_closest  # lazy: embree imports inputs.rays
@@ -98,7 +120,12 @@ class SurfacePoints:
         t_plane = np.einsum("ij,ij->i", tris[:, 0] - o, normal) / np.einsum("ij,ij->i", d, normal)
         self.point = o + t_plane[:, None] * d
         self.normal = normal
-        self.origin = offset_origin(self.point.astype(np.float32), normal)
+
+    def origins(self, directions: np.ndarray, per_point: int = 1) -> np.ndarray:
+        """Float32 origins of rays leaving each point in `directions` ((count * per_point, 3),
+        per_point consecutive rays a point)."""
+        point = np.repeat(self.point.astype(np.float32), per_point, axis=0)
+        return leave_surface(point, np.repeat(self.normal, per_point, axis=0), directions)
 
     @property
     def count(self) -> int:
@@ -146,12 +173,12 @@ def shadow_arrays(scene, primary, *, light=None, light_size: float = 0.0, sample
     rng = np.random.default_rng(seed)
     lights = light_samples(scene, light, float(light_size), int(samples), rng)
     sp = SurfacePoints(scene, primary)
-    origin = np.repeat(sp.origin, len(lights), axis=0).astype(np.float64)
     target = np.tile(lights, (sp.count, 1))
     normal = np.repeat(sp.normal, len(lights), axis=0)
     point = np.repeat(sp.point, len(lights), axis=0)
     keep = np.einsum("ij,ij->i", target - point, normal) > 0
-    origin, target = origin[keep], target[keep]
+    point, normal, target = point[keep], normal[keep], target[keep]
+    origin = leave_surface(point.astype(np.float32), normal, target - point).astype(np.float64)
     directions = unit_directions(target - origin)
     # tmax from the float32 origin and direction the kernels read: o + tmax d is the light point
     tmax = np.linalg.norm(target - origin, axis=1).astype(np.float32)
@@ -164,18 +191,18 @@ def ao_arrays(scene, primary, *, samples: int = 4, distance: float = 0.1,
     `distance` x the scene's bounding-box diagonal, for an any-hit query. Ray order: hit by hit."""
     rng = np.random.default_rng(seed)
     sp = SurfacePoints(scene, primary)
-    normal = np.repeat(sp.normal, samples, axis=0)
-    directions = unit_directions(cosine_directions(normal, rng))
+    directions = unit_directions(cosine_directions(np.repeat(sp.normal, samples, axis=0), rng))
     lo, hi = (b.astype(np.float64) for b in scene.bounds)
-    tmax = np.full(len(normal), distance * float(np.linalg.norm(hi - lo)), np.float32)
-    return np.repeat(sp.origin, samples, axis=0), directions, tmax
+    tmax = np.full(len(directions), distance * float(np.linalg.norm(hi - lo)), np.float32)
+    return sp.origins(directions, samples), directions, tmax
 
 
 def diffuse_arrays(scene, primary, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray, None]:
     """One diffuse bounce: a cosine-weighted direction per primary hit, for the closest hit."""
     rng = np.random.default_rng(seed)
     sp = SurfacePoints(scene, primary)
-    return sp.origin, unit_directions(cosine_directions(sp.normal, rng)), None
+    directions = unit_directions(cosine_directions(sp.normal, rng))
+    return sp.origins(directions), directions, None
 
 
 def incoherent_arrays(scene, *, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, None]:

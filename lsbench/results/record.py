@@ -39,11 +39,11 @@ class Record:
     ls_n: int
     ls_min_candidates: int
     rays: str
-    ray_params: dict
-    query: str
     width: int
     height: int
     camera: dict | None = None
+    ray_params: dict = field(default_factory=dict)
+    query: str = "closest"
     scene_hash: str | None = None
     triangles: int | None = None
     rays_hash: str | None = None

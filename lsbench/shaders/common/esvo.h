@@ -72,15 +72,20 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     if (dd.z > 0.0f) { mirror ^= 4u; tz_bias = 3.0f * tz_coef - tz_bias; }
     float t_min = max(max(2.0f * tx_coef - tx_bias, 2.0f * ty_coef - ty_bias), 2.0f * tz_coef - tz_bias);
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
+    // h (below) starts at the cube's exit, before the ray's own tmax shortens t_max (as in LK10):
+    // started at a finite tmax (shadow, AO rays), PUSH would skip the stack entry of a parent the
+    // ray does not leave before tmax, and the walk, which goes on past tmax, would POP into it.
+    float t_cube_exit = t_max;
     t_min = max(t_min, ray.tmin * dlen);
     t_max = min(t_max, ray.tmax * dlen);
+    float t_end = t_max;  // nothing past the ray's end can be hit: the walk stops there
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
         // one per level above the leaves, "sized to depth".
         uint stack_node[OCT_DEPTH];
         float stack_tmax[OCT_DEPTH];
         int leaf_scale = ESVO_SMAX - OCT_DEPTH;
-        float h = t_max;
+        float h = t_cube_exit;
         uint parent = 0u;  // descriptor index of the node whose children are walked
         uint desc = 0u;  // its descriptor; 0 = fetch again
         uint idx = 0u;  // mirrored slot of the current cell
@@ -139,6 +144,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
             if (ty_corner <= tc_max) { step_mask ^= 2u; pos.y -= scale_exp2; }
             if (tz_corner <= tc_max) { step_mask ^= 4u; pos.z -= scale_exp2; }
             t_min = tc_max;
+            if (t_min > t_end) break;
             idx ^= step_mask;
             if ((idx & step_mask) != 0u) {
                 // POP: the step left the parent. The highest bit in which the stepped
