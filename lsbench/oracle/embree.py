@@ -14,6 +14,11 @@ version changes):
   at t = 0). `rays.tmin` therefore cannot be passed through; for tmin != 0 the origins are moved
   to `o + tmin * d` and tmin is added back to the distance. That equals "ignore hits with
   t < tmin" up to float32 rounding of the moved origin (|error| ~ 1 ulp of the coordinates).
+- A ray set's per-ray tmax is not passed either: every ray is traced to infinity, and
+  lsbench.oracle.verify reads a hit at t >= tmax as none. An any-hit query (shadow, AO rays) is
+  answered from the closest hit too (occluded iff t < tmax, verify.embree_occluded):
+  `query='OCCLUDED'` is broken in embreex 4.4 (it returns -1 for hits). The cache holds the
+  closest hits only, so one file serves a ray set under either query.
 - Passing `dists=` makes embreex write into that array in place; we never pass it.
 - Zero-area triangles (a repeated index, or collinear corners) are accepted by the build and are
   never hit (Embree's determinant is zero), which is the right answer for a closest-hit query.
@@ -35,11 +40,26 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from importlib import metadata
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from lsbench.inputs.rays import RaySet
 from lsbench.inputs.scene import Scene
+
+
+class RaySet(Protocol):
+    """What Embree reads of a ray set (lsbench.inputs.rays.RaySet). Not imported from there: the
+    secondary ray sets start at Embree's hits (inputs/secondary.py), so inputs.rays needs this
+    module, and an import back would be a cycle."""
+    origins: np.ndarray
+    directions: np.ndarray
+    tmin: float
+
+    @property
+    def count(self) -> int: ...
+
+    @property
+    def content_hash(self) -> str: ...
 
 # Bump when the meaning of cached arrays changes (build flags, tmin handling, ...).
 CACHE_FORMAT = 1
