@@ -293,3 +293,29 @@ def test_bad_ray_param_is_one_line_error(args, needle):
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and proc.stdout == "" and len(lines) == 1, proc.stderr
     assert needle in lines[0]
+
+
+def test_any_hit_disagreements_are_classified_in_float64():
+    """two-planes: z = 0 (triangles 0, 1) in front of z = -1 (2, 3). Rays from z = 1 straight
+    down through (0.3, -0.5), tmax 1.5: the near plane occludes them, the far one (triangle 2
+    there) lies past tmax, triangle 3 is not on the ray."""
+    from lsbench.inputs.rays import RaySet
+    from lsbench.oracle.classifier import classify_disagreements
+
+    scene = load_scene("two-planes")
+    origins = np.array([[0.3, -0.5, 1.0]] * 4, np.float32)
+    down = np.array([[0.0, 0.0, -1.0]] * 4, np.float32)
+    rays = RaySet("probe", origins, down, tmax=np.full(4, 1.5, np.float32), query="any")
+    ref_p, ref_t = embree_closest(scene, rays)
+    assert (ref_p >= 0).all() and np.allclose(ref_t, 1.0)
+    near = int(ref_p[0])
+    # missing a robust occluder is a bug; naming another occluder is agreement
+    out = classify_disagreements(scene, rays, np.array([-1, near, near, near]),
+                                 np.array([np.inf, 1, 1, 1], np.float32), ref_p, ref_t)
+    assert out["labels"].tolist() == ["unexplained", "agree", "agree", "agree"]
+    # against an Embree that missed: the backend's real hit before tmax is right (Embree is
+    # not); a triangle the ray does not meet, a hit past tmax, and no hit at all are not
+    out = classify_disagreements(scene, rays, np.array([near, 3, 2, -1]),
+                                 np.array([1.0, 1.0, 2.0, np.inf], np.float32),
+                                 np.full(4, -1), np.full(4, np.inf, np.float32))
+    assert out["labels"].tolist() == ["embree-imprecise", "unexplained", "unexplained", "agree"]
