@@ -319,3 +319,8 @@ def test_any_hit_disagreements_are_classified_in_float64():
                                  np.array([1.0, 1.0, 2.0, np.inf], np.float32),
                                  np.full(4, -1), np.full(4, np.inf, np.float32))
     assert out["labels"].tolist() == ["embree-imprecise", "unexplained", "unexplained", "agree"]
+
+
+def test_too_many_secondary_rays_is_a_ray_error(cornell):
+    with pytest.raises(RayError, match="over the limit"):
+        make_rays("ao", cornell, 8192, 8192, None, {"samples": 2})

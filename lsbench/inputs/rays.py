@@ -201,6 +201,10 @@ def _generated(name: str, arrays, params: dict) -> RaySet:
 def _secondary(name: str, make_arrays):
     """A generator of rays that start at the primary rays' hits (inputs/secondary.py)."""
     def generate(scene: Scene, width: int, height: int, camera: Camera | None = None, **params) -> RaySet:
+        most = width * height * params.get("samples", 1)  # every pixel hits: the most rays it makes
+        if most > MAX_IMAGE_RAYS:
+            raise RayError(f"{name} rays: {width}x{height} pixels x {params.get('samples', 1)} samples may make "
+                           f"{most} rays, over the limit of {MAX_IMAGE_RAYS}")
         primary = primary_rays(scene, width, height, camera)
         try:
             return _generated(name, make_arrays(scene, primary, **params), params)
