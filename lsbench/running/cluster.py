@@ -43,7 +43,7 @@ INSTALL_HINT = "pip install 'lsbench[cluster]'"
 # (`ray start --num-cpus 1`, docs/cluster.md).
 CASE_CPUS = 1
 PROBE_SECONDS = 300  # opening both backends takes a few seconds; a node silent longer is left out
-NODE_ID_LABEL = "ray.io/node-id"  # the label Ray gives every node
+NODE_ID_LABEL = "ray.io/node-id"  # the label Ray gives every node; a selector lists ids as "in(a,b)", no spaces (Ray 2.60 keeps them)
 
 
 class ClusterError(RuntimeError):
@@ -103,7 +103,7 @@ class Placement:
 
     def options(self, resources: dict[str, float], retries: int) -> dict:
         """Ray task options: the nodes by id (Ray's label selector), the resources, the retries."""
-        ids = ", ".join(n.id for n in self.nodes)
+        ids = ",".join(n.id for n in self.nodes)
         return {"num_cpus": CASE_CPUS, "num_gpus": self.num_gpus, "resources": dict(resources),
                 "label_selector": {NODE_ID_LABEL: f"in({ids})"}, "max_retries": retries,
                 "retry_exceptions": False}
@@ -323,7 +323,7 @@ class Cluster:
                 rid = input_id(case)
                 scene_ref, rays_ref = self._data[rid]
                 if rid not in self._truth:
-                    usable = ", ".join(n.id for n in self.nodes if n.unusable is None)
+                    usable = ",".join(n.id for n in self.nodes if n.unusable is None)
                     self._truth[rid] = truth_task.options(
                         label_selector={NODE_ID_LABEL: f"in({usable})"}, max_retries=self.retries,
                         retry_exceptions=False).remote(scene_ref, rays_ref)

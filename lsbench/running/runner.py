@@ -294,7 +294,8 @@ def resume_text(decisions, fresh: bool) -> str:
 def progress_text(rec: dict) -> str:
     where = f" on {node_text(rec['node'])}" if rec.get("node") else ""
     if rec.get("status") != "ok":
-        return f"FAILED ({rec.get('wall_seconds') or 0:.1f} s{where}): {rec.get('reason')}"
+        took = f"{rec['wall_seconds']:.1f} s" if rec.get("wall_seconds") is not None else "no record came back"
+        return f"FAILED ({took}{where}): {rec.get('reason')}"
     return (f"ok ({rec.get('wall_seconds') or 0:.1f} s{where}): agreement {rec['agreement']:.6f} "
             f"({rec.get('unexplained')} unexplained), "
             f"{rec['rays_per_second'] / 1e6:.2f} Mrays/s, {rec['memory_bytes'] / 2**20:.1f} MiB, "
