@@ -215,8 +215,10 @@ def test_cases_go_to_the_nodes_that_open_their_backend_and_to_gpus_first():
 @pytest.mark.parametrize("flag", [["--cluster", "nowhere"], ["--cluster", "host:99999"],
                                   ["--cluster", "auto", "--cluster-resource", "GPU=1"],
                                   ["--cluster", "auto", "--cluster-resource", "h100=0"],
-                                  ["--cluster", "auto", "--cluster-retries", "-1"]])
+                                  ["--cluster", "auto", "--cluster-retries", "-1"],
+                                  ["--cluster", "127.0.0.1:1"]])  # nothing listens: at once, not after minutes
 def test_bad_cluster_flags_are_one_line(flag, tmp_path):
-    res = lsbench("run", scenario(tmp_path), *flag)
+    res = lsbench("run", scenario(tmp_path), "--out", tmp_path / "run", *flag, timeout=60)
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and flag[-1] in lines[0], res.stderr
+    assert not (tmp_path / "run" / "results.jsonl").exists()

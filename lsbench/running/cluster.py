@@ -42,6 +42,7 @@ INSTALL_HINT = "pip install 'lsbench[cluster]'"
 # core of their node, so for timings that compare, start a node with one slot per device
 # (`ray start --num-cpus 1`, docs/cluster.md).
 CASE_CPUS = 1
+CONNECT_SECONDS = 10  # a head that does not accept a connection in this time is not there
 PROBE_SECONDS = 300  # opening both backends takes a few seconds; a node silent longer is left out
 NODE_ID_LABEL = "ray.io/node-id"  # the label Ray gives every node; a selector lists ids as "in(a,b)", no spaces (Ray 2.60 keeps them)
 
@@ -197,14 +198,23 @@ class Cluster:
         self._truth: dict[tuple, object] = {}  # input_id -> ground-truth ref, made on first use
 
     def __enter__(self) -> "Cluster":
+        _check_reachable(self.address)
         ray = _ray()
-        kwargs = {"include_dashboard": False} if self.address == "local" else {}
+        # a throw-away local Ray runs one case at a time, as a local run does (docs/cluster.md)
+        kwargs = {"include_dashboard": False, "num_cpus": CASE_CPUS} if self.address == "local" else {}
         try:
             ray.init(address=self.address, namespace="lsbench", log_to_driver=False, logging_level="warning",
                      **kwargs)
         except Exception as exc:  # Ray raises ConnectionError, ValueError, RuntimeError, ...
+            hint = ""
+            if not os.environ.get("RAY_AUTH_MODE") and _auth_token_at_hand():
+                # `ray start --head` (2.60) asks for a token, which a driver given HOST:PORT sends
+                # only in token mode; without it Ray retries for a minute and gives up like this.
+                # Not set here: token mode against a cluster without authentication loses the
+                # objects a node fetches from this driver (both seen on one machine).
+                hint = "; if the cluster uses token authentication (ray start --head does), set RAY_AUTH_MODE=token"
             raise ClusterError(f"--cluster {self.address}: cannot connect to Ray "
-                               f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+                               f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}){hint}") from None
         try:
             self.nodes = self._probe_nodes()
         except BaseException:
@@ -229,12 +239,12 @@ class Cluster:
         asked = {}
         for node in nodes:
             if node.resources.get("CPU", 0) < CASE_CPUS:
-                node.unusable = f"offers no CPU to run cases (it was started with --num-cpus 0)"
+                node.unusable = "offers no CPU to run cases (it was started with --num-cpus 0)"
                 continue
             asked[probe.options(num_cpus=0, max_retries=0,
                                 scheduling_strategy=NodeAffinitySchedulingStrategy(node.id, soft=False)
                                 ).remote(list(backends.BACKENDS))] = node
-        ready, _ = ray.wait(list(asked), num_returns=len(asked), timeout=PROBE_SECONDS)
+        ready, _ = ray.wait(list(asked), num_returns=len(asked), timeout=PROBE_SECONDS) if asked else ([], [])
         for ref, node in asked.items():
             if ref not in ready:
                 node.unusable = f"did not answer the probe within {PROBE_SECONDS} s"
@@ -370,6 +380,26 @@ class Cluster:
             rec["node"] = node.name if node else None
             return rec
         return failed_record(plan.case, settings, _error_text(exc), env, plan.expected)
+
+
+def _auth_token_at_hand() -> bool:
+    """Whether Ray would find a cluster token here: RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH, or the
+    file `ray start --head` (and `--cluster local`) writes."""
+    return bool(os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+                or (Path.home() / ".ray" / "auth_token").is_file())
+
+
+def _check_reachable(address: str) -> None:
+    """ClusterError at once when nothing listens at an explicit HOST:PORT: ray.init (2.60) would
+    retry for many minutes, deaf to SIGTERM. `auto` and `local` Ray resolves on this machine."""
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_SECONDS).close()
+    except OSError as exc:
+        raise ClusterError(f"--cluster {address}: nothing answers there ({exc.strerror or exc}); "
+                           "start the head with `ray start --head` (docs/cluster.md)") from None
 
 
 def _error_text(exc) -> str:
