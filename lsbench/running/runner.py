@@ -200,15 +200,12 @@ def expected_fields(case_inputs: dict, env: dict, settings: dict, device: dict) 
                 **{f: device.get(f) for f in ("device", "driver", "backend_version")})
 
 
-def plan_cases(scenario: Scenario, env: dict, devices: dict[str, dict],
-               described: dict[tuple, dict] | None = None) -> list[CasePlan]:
+def plan_cases(scenario: Scenario, env: dict, devices: dict[str, dict]) -> list[CasePlan]:
     """What each case would record about its inputs and environment, before any case runs:
     every scene and ray set is made here once (a missing or corrupt file is a SceneError or
     RayError now, not a run of failed cases) and known by its content hash. devices: per
-    backend, environment.device_info(); described: execute.case_inputs() per input_id where
-    the caller made the inputs already."""
-    if described is None:
-        described = {rid: case_inputs(scene, rays) for rid, scene, rays in scenario_inputs(scenario)}
+    backend, environment.device_info(). (A cluster plans its own: cluster.Cluster.plan.)"""
+    described = {rid: case_inputs(scene, rays) for rid, scene, rays in scenario_inputs(scenario)}
     settings = result_settings(scenario.settings)
     return [CasePlan(c, expected_fields(described[input_id(c)], env, settings, devices.get(c.backend) or {}))
             for c in scenario.cases]
