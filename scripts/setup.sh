@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent set-up on a fresh Debian/Ubuntu machine: system drivers (EGL + Mesa for GL,
 # PoCL for OpenCL, Chromium for the report test), then a virtual environment in .venv with
-# lsbench and its test extra. Safe to run again: it installs only what is missing.
+# lsbench and its test and cluster extras. Safe to run again: it installs only what is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -34,6 +34,6 @@ fi
 stamp=.venv/.lsbench-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e '.[test]'
+  .venv/bin/python -m pip install -q -e '.[test,cluster]'
   touch "$stamp"
 fi

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 
 from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
-                                   number, ray_param_text, resolve_ray_params, writable_folder)
+                                   integer, number, ray_param_text, resolve_ray_params, writable_folder)
 from lsbench.inputs.scenario import LS_MIN_CANDIDATES, LS_N, RUN_RULES
 
 
@@ -58,6 +58,39 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heatmaps", action="store_true", help="write heatmaps for every case")
     p.add_argument("--memory-budget", type=RUN_RULES["memory_budget_mb"].flag, metavar="MiB",
                    help="host memory limit per case worker")
+    cluster = p.add_argument_group("sweeps on a Ray cluster (pip install 'lsbench[cluster]'; docs/cluster.md)")
+    cluster.add_argument("--cluster", type=cluster_address, metavar="ADDRESS",
+                         help="run each case as a Ray task on the cluster at ADDRESS: auto, HOST:PORT, "
+                              "ray://HOST:PORT, or local (a throw-away Ray on this machine)")
+    cluster.add_argument("--cluster-resource", type=cluster_resource, action="append", default=[],
+                         metavar="NAME[=N]", help="every case asks for N (default 1) of a custom resource "
+                                                  "(ray start --resources): pins cases to the nodes that carry it")
+    cluster.add_argument("--cluster-retries", type=CLUSTER_RETRIES.flag, default=2, metavar="N",
+                         help="run a case again on another node this many times when its node dies (default 2)")
+
+
+CLUSTER_RETRIES = integer(0)
+
+
+def cluster_address(text: str) -> str:
+    """argparse `type=` for --cluster: the address as ray.init takes it."""
+    host, _, port = text.removeprefix("ray://").rpartition(":")
+    if text in ("auto", "local") or (host and port.isdigit() and 0 < int(port) < 65536):
+        return text
+    raise argparse.ArgumentTypeError(f"{text} is not a Ray address: auto, local, HOST:PORT or ray://HOST:PORT")
+
+
+def cluster_resource(text: str) -> tuple[str, float]:
+    """argparse `type=` for --cluster-resource: NAME or NAME=N, N a number > 0."""
+    name, eq, amount = text.partition("=")
+    try:
+        value = float(amount) if eq else 1.0
+    except ValueError:
+        value = 0.0
+    if not name or name in ("CPU", "GPU", "memory") or not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"{text} is not NAME[=N]: a custom resource of the nodes "
+                                         "(not CPU, GPU or memory) and an amount > 0")
+    return name, value
 
 
 def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> None:

@@ -31,7 +31,7 @@ def default_out_dir(name: str) -> Path:
     return reports_dir() / f"{name}-{stamp}-{commit[:7]}{'-dirty' if dirty else ''}"
 
 
-def write_run_json(out: Path, scenario, devices: dict, argv) -> None:
+def write_run_json(out: Path, scenario, devices: dict, argv, extra: dict | None = None) -> None:
     from lsbench.results.store import write_run_info
     from lsbench.running.environment import code_state, environment_info
 
@@ -39,7 +39,7 @@ def write_run_json(out: Path, scenario, devices: dict, argv) -> None:
     info = environment_info()
     info.update({"commit": commit, "dirty": dirty, "devices": devices, "scenario": scenario.path,
                  "settings": dataclasses.asdict(scenario.settings),
-                 "scenario_name": scenario.name, "command": " ".join(argv)})
+                 "scenario_name": scenario.name, "command": " ".join(argv), **(extra or {})})
     write_run_info(out, info)
 
 
@@ -54,40 +54,69 @@ def prepare_out_dir(path: Path) -> Path:
     return path
 
 
-def run_scenario_file(args):
-    """Load and run the scenario the arguments name, holding the lock on its run folder:
-    (scenario, records). `gate` runs the same and then judges the records."""
+def load_run_scenario(args, gpu: bool = False):
+    """The scenario the arguments name, at its GPU image size when `gpu`, with --memory-budget."""
     from lsbench.inputs.scenario import load_scenario
-    from lsbench.results.store import ResultsError, RunLock, check_writable
-    from lsbench.running.environment import device_info, record_env, uses_gpu
-    from lsbench.running.runner import plan_cases, run_scenario, summary_table
 
-    scenario = load_scenario(args.scenario)
-    if scenario.settings.gpu_width:
-        scenario = load_scenario(args.scenario, gpu=uses_gpu({c.backend for c in scenario.cases}))
+    scenario = load_scenario(args.scenario, gpu=gpu)
     if args.memory_budget:
         scenario.settings = dataclasses.replace(scenario.settings, memory_budget_mb=args.memory_budget)
+    return scenario
+
+
+def run_scenario_file(args):
+    """Load and run the scenario the arguments name, holding the lock on its run folder:
+    (scenario, records). `gate` runs the same and then judges the records. With --cluster the
+    cases run on a Ray cluster (lsbench/running/cluster.py) into the same folder and store."""
+    from lsbench.results.store import ResultsError, RunLock, check_writable
+    from lsbench.running.environment import device_info, record_env, uses_gpu
+    from lsbench.running.runner import plan_cases, summary_table
+
+    scenario = load_run_scenario(args)
+    backends = {c.backend for c in scenario.cases}
+    if scenario.settings.gpu_width and not args.cluster:
+        scenario = load_run_scenario(args, gpu=uses_gpu(backends))
     out = prepare_out_dir(Path(args.out) if args.out else default_out_dir(scenario.name))
     try:
         with RunLock(out, " ".join(["lsbench", *sys.argv[1:]])):
             check_writable(out, args.fresh)
-            devices = device_info(c.backend for c in scenario.cases)
             env = record_env()
-            plans = plan_cases(scenario, env, devices)  # bad scene or ray files: exit 2 here
-            if not args.fresh:  # a --fresh run replaces run.json with results.jsonl, once done
-                write_run_json(out, scenario, devices, sys.argv)
-            say(f"lsbench run {scenario.name}: {len(scenario.cases)} cases -> {out}")
-            records = run_scenario(scenario, plans, out, env, fresh=args.fresh,
-                                   heatmaps=True if args.heatmaps else None, keep_failed=args.keep_failed,
-                                   log=say)
-            if args.fresh:
-                write_run_json(out, scenario, devices, sys.argv)
+            if args.cluster:
+                from lsbench.running.cluster import Cluster, ClusterError
+
+                try:
+                    with Cluster(args.cluster, dict(args.cluster_resource), args.cluster_retries, log=say) as cluster:
+                        if scenario.settings.gpu_width:
+                            scenario = load_run_scenario(args, gpu=cluster.uses_gpu(backends))
+                        plans = cluster.plan(scenario, env)  # bad scene or ray files: exit 2 here
+                        records = _run_into(out, args, scenario, cluster.devices(backends), plans, env,
+                                            cluster.run_cases, {"cluster": cluster.describe()})
+                except ClusterError as exc:
+                    raise UsageError(str(exc)) from None
+            else:
+                devices = device_info(backends)
+                plans = plan_cases(scenario, env, devices)  # bad scene or ray files: exit 2 here
+                records = _run_into(out, args, scenario, devices, plans, env)
     except ResultsError as exc:
         raise UsageError(str(exc)) from None
     say()
     say(summary_table(records))
     say(f"\nresults: {out / 'results.jsonl'}")
     return scenario, records
+
+
+def _run_into(out: Path, args, scenario, devices: dict, plans, env: dict, cases=None, info: dict | None = None):
+    """Run the planned cases into `out` (locked), writing run.json (with `info` added)."""
+    from lsbench.running.runner import run_locally, run_scenario
+
+    if not args.fresh:  # a --fresh run replaces run.json with results.jsonl, once done
+        write_run_json(out, scenario, devices, sys.argv, info)
+    say(f"lsbench run {scenario.name}: {len(scenario.cases)} cases -> {out}")
+    records = run_scenario(scenario, plans, out, env, fresh=args.fresh, heatmaps=True if args.heatmaps else None,
+                           keep_failed=args.keep_failed, log=say, cases=cases or run_locally)
+    if args.fresh:
+        write_run_json(out, scenario, devices, sys.argv, info)
+    return records
 
 
 def run(args) -> int:

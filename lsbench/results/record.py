@@ -57,6 +57,7 @@ class Record:
     device: str | None = None
     driver: str | None = None
     backend_version: str | None = None
+    node: dict | None = None  # the cluster node that ran the case (lsbench/running/cluster.py)
     settings: dict = field(default_factory=dict)
     # what came out
     status: str = "failed"

@@ -94,27 +94,36 @@ def diff_hash(repo_dir) -> str | None:
     return h.hexdigest()[:16]
 
 
+def machine_env() -> dict:
+    """The record fields that describe this machine's software, not the code: package versions
+    and the test-only planted defect (a cluster node records its own)."""
+    return {"versions": package_versions(),
+            # the test-only defect backends.build plants: it changes what an ok case measures
+            "planted_defect": os.environ.get("LSBENCH_PLANT_DEFECT") or None}
+
+
 def record_env() -> dict:
     """The code and package fields every record carries (lsbench/results/record.py)."""
     commit, dirty = code_state()
     top = source_checkout()
     return {"commit": commit, "dirty": dirty, "diff_hash": diff_hash(top) if dirty and top else None,
-            "versions": package_versions(),
-            # the test-only defect backends.build plants: it changes what an ok case measures
-            "planted_defect": os.environ.get("LSBENCH_PLANT_DEFECT") or None}
+            **machine_env()}
+
+
+def on_gpu(backend_name: str, info: dict) -> bool:
+    """Whether a backend's device (its Device.info()) is a GPU rather than a CPU driver."""
+    if backend_name == "opencl":
+        return "GPU" in str(info.get("device_type", ""))
+    if backend_name == "glsl":
+        return not any(s in str(info.get("device", "")).lower() for s in ("llvmpipe", "softpipe", "lavapipe"))
+    return False
 
 
 def uses_gpu(backend_names) -> bool:
     """True when any of the backends runs on a GPU (scenarios then use their gpu_width/height)."""
     from lsbench import backends
 
-    for name in backend_names:
-        info = backends.get_device(name).info()
-        if name == "opencl" and "GPU" in str(info.get("device_type", "")):
-            return True
-        if name == "glsl" and not any(s in info["device"].lower() for s in ("llvmpipe", "softpipe", "lavapipe")):
-            return True
-    return False
+    return any(on_gpu(name, backends.get_device(name).info()) for name in backend_names)
 
 
 def device_info(backend_names) -> dict[str, dict]:

@@ -74,10 +74,12 @@ def work_fields(work: np.ndarray) -> dict:
 
 
 def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hits: str | None = None,
-            heatmap_dir: str | None = None, scene=None, rays=None) -> dict:
+            heatmap_dir: str | None = None, scene=None, rays=None, truth=None) -> dict:
     """Run one case and return its record (a dict, lsbench.results.record). Driver limits and
     driver errors become a failed record with the reason; bad input (scene/rays) raises
-    SceneError/RayError to the caller."""
+    SceneError/RayError to the caller. scene, rays, truth: the case's Scene, RaySet and Embree's
+    (prim_ids, t) for them when the caller has them (a cluster computes the truth once per scene
+    and rays); None = load, make or look them up here."""
     from lsbench import backends
     from lsbench.backends import DeviceError, DeviceLimitError
 
@@ -91,7 +93,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     if rays is None:
         rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object(), case.ray_params)
     rec = new_record(case, settings, env, case_inputs(scene, rays))
-    ref_prim, ref_t = embree_closest(scene, rays)
+    ref_prim, ref_t = truth if truth is not None else embree_closest(scene, rays)
     if settings.embree_timing:
         from lsbench.oracle.embree import embree_trace_seconds
 

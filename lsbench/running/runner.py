@@ -67,7 +67,7 @@ def _die_with_parent(parent_pid: int) -> None:
 
 
 def _worker(conn, parent_pid: int, case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None,
-            inputs: dict | None) -> None:
+            inputs: dict | None, given: CaseData | None) -> None:
     _die_with_parent(parent_pid)
     # The parent handles Ctrl-C; a worker just dies with it.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -78,7 +78,9 @@ def _worker(conn, parent_pid: int, case: Case, settings: RunSettings, env: dict,
         limit = int(settings.memory_budget_mb * 2**20)
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     try:
-        rec = execute(case, settings, env, heatmap_dir=heatmap_dir)
+        data = given or CaseData()
+        rec = execute(case, settings, env, heatmap_dir=heatmap_dir, scene=data.scene, rays=data.rays,
+                      truth=data.truth)
     except MemoryError:
         rec = failed_record(case, settings, f"{budget_text(settings)} exceeded (MemoryError)", env, inputs)
     except Exception as exc:  # bad scene or rays: the case fails with the one-line reason
@@ -92,14 +94,24 @@ def _worker(conn, parent_pid: int, case: Case, settings: RunSettings, env: dict,
     conn.close()
 
 
+@dataclass
+class CaseData:
+    """A case's inputs already in memory (a cluster node gets them by content, not by path):
+    the Scene, the RaySet and Embree's (prim_ids, t) for them; None = load or compute it."""
+    scene: object = None
+    rays: object = None
+    truth: tuple | None = None
+
+
 def run_case_isolated(case: Case, settings: RunSettings, env: dict, heatmap_dir: str | None = None,
-                      inputs: dict | None = None) -> dict:
+                      inputs: dict | None = None, given: CaseData | None = None) -> dict:
     """The record of `case` run in a fresh worker process. `inputs` (what plan_cases expects:
-    scene and ray hashes, device) fill the record of a worker that crashed or timed out. Call it
-    from the main thread: the worker's death signal follows the thread that started it."""
+    scene and ray hashes, device) fill the record of a worker that crashed or timed out; `given`
+    hands it the scene, rays and ground truth instead of their paths. Call it from the main
+    thread: the worker's death signal follows the thread that started it."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_worker, args=(child, os.getpid(), case, settings, env, heatmap_dir, inputs),
+    proc = ctx.Process(target=_worker, args=(child, os.getpid(), case, settings, env, heatmap_dir, inputs, given),
                        daemon=True)
     proc.start()
     child.close()
@@ -149,40 +161,75 @@ def _wait_for_record(proc, parent, case, settings, env, inputs) -> dict:
 class CasePlan:
     case: Case
     expected: dict  # the identity and environment fields this run would record for the case
+    # On a cluster, what the case would record on each other node that may run it: an earlier
+    # record is reused when it matches any one of them (lsbench/running/cluster.py).
+    alternatives: tuple[dict, ...] = ()
+
+    def reuse_mismatch(self, old: dict, heatmaps_wanted: bool, keep_failed: bool) -> str | None:
+        """Why `old` cannot stand for this case (the reason against `expected`), or None."""
+        why = reuse_mismatch(old, self.expected, heatmaps_wanted, keep_failed)
+        if why is not None and any(reuse_mismatch(old, other, heatmaps_wanted, keep_failed) is None
+                                   for other in self.alternatives):
+            return None
+        return why
+
+
+def input_id(case: Case) -> tuple:
+    """What makes a case's scene and rays: cases with one input_id trace the same rays."""
+    return (case.scene, case.rays, case.ray_params, case.width, case.height, case.camera)
+
+
+def scenario_inputs(scenario: Scenario):
+    """(input_id, Scene, RaySet) for every distinct scene and ray set of the scenario, made one
+    after another (a missing or corrupt file raises SceneError or RayError here)."""
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenes import load_scene
+
+    made = set()
+    for spec in dict.fromkeys(c.scene for c in scenario.cases):
+        scene = load_scene(spec)
+        for c in scenario.cases:
+            if c.scene == spec and input_id(c) not in made:
+                made.add(input_id(c))
+                yield input_id(c), scene, make_rays(c.rays, scene, c.width, c.height, c.camera_object(),
+                                                    c.ray_params)
+
+
+def expected_fields(case_inputs: dict, env: dict, settings: dict, device: dict) -> dict:
+    """What a record of a case would hold about its inputs and environment (reuse_mismatch)."""
+    return dict(case_inputs, **env, settings=settings,
+                **{f: device.get(f) for f in ("device", "driver", "backend_version")})
 
 
 def plan_cases(scenario: Scenario, env: dict, devices: dict[str, dict]) -> list[CasePlan]:
     """What each case would record about its inputs and environment, before any case runs:
     every scene and ray set is made here once (a missing or corrupt file is a SceneError or
     RayError now, not a run of failed cases) and known by its content hash. devices: per
-    backend, environment.device_info()."""
-    from lsbench.inputs.rays import make_rays
-    from lsbench.inputs.scenes import load_scene
-
-    inputs: dict[tuple, dict] = {}
-    for spec in dict.fromkeys(c.scene for c in scenario.cases):
-        scene = load_scene(spec)
-        for c in scenario.cases:
-            ray_id = (spec, c.rays, c.ray_params, c.width, c.height, c.camera)
-            if c.scene == spec and ray_id not in inputs:
-                inputs[ray_id] = case_inputs(scene, make_rays(c.rays, scene, c.width, c.height, c.camera_object(),
-                                                              c.ray_params))
+    backend, environment.device_info(). (A cluster plans its own: cluster.Cluster.plan.)"""
+    described = {rid: case_inputs(scene, rays) for rid, scene, rays in scenario_inputs(scenario)}
     settings = result_settings(scenario.settings)
-    plans = []
-    for c in scenario.cases:
-        device = devices.get(c.backend) or {}
-        expected = dict(inputs[(c.scene, c.rays, c.ray_params, c.width, c.height, c.camera)], **env,
-                        settings=settings,
-                        **{f: device.get(f) for f in ("device", "driver", "backend_version")})
-        plans.append(CasePlan(c, expected))
-    return plans
+    return [CasePlan(c, expected_fields(described[input_id(c)], env, settings, devices.get(c.backend) or {}))
+            for c in scenario.cases]
+
+
+def run_locally(todo, total: int, settings: RunSettings, env: dict, heatmap_dir: str | None, log):
+    """Run each (index, CasePlan, why) of `todo` in turn in an isolated worker on this machine;
+    yield (index, plan, record) as each finishes."""
+    for i, plan, why in todo:
+        log(f"[{i}/{total}] {plan.case.key}: running" + ("" if why == "new" else f" ({why})"))
+        t0 = time.perf_counter()
+        rec = run_case_isolated(plan.case, settings, env, heatmap_dir, plan.expected)
+        rec["wall_seconds"] = time.perf_counter() - t0
+        yield i, plan, rec
 
 
 def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: dict, fresh: bool = False,
-                 heatmaps: bool | None = None, keep_failed: bool = False, log=print) -> list[dict]:
+                 heatmaps: bool | None = None, keep_failed: bool = False, log=print, cases=run_locally) -> list[dict]:
     """Run the planned cases of `scenario` into out_dir (whose store.RunLock the caller holds) and
     return the records, reused ones included. fresh: reuse nothing and supersede results.jsonl
-    only once every case is done; keep_failed: reuse failed records too instead of retrying them."""
+    only once every case is done; keep_failed: reuse failed records too instead of retrying them.
+    cases: what runs the cases that are not reused (run_locally, or a cluster's) and yields their
+    records as they finish; it draws them from its `todo` iterator as it goes."""
     results = RunResults(out_dir, fresh, warn=lambda m: log(f"warning: {m}"))
     if results.stale_fresh:
         log(f"warning: {results.side} holds an unfinished --fresh run; this run leaves it alone "
@@ -191,29 +238,32 @@ def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: 
     decisions = []
     for plan in plans:
         old = results.earlier.get(plan.case.key)
-        why = "new" if old is None else reuse_mismatch(old, plan.expected, want_heatmaps, keep_failed)
+        why = "new" if old is None else plan.reuse_mismatch(old, want_heatmaps, keep_failed)
         decisions.append((plan, old, why))
     log(resume_text(decisions, fresh))
-    records = []
     total = len(plans)
-    try:
+    records: list[dict | None] = [None] * total
+
+    def todo():  # reused records are told in order, as the runner draws the next case to run
         for i, (plan, old, why) in enumerate(decisions, 1):
-            case = plan.case
             if why is None:
-                log(f"[{i}/{total}] {case.key}: done earlier ({old.get('status')}), reused")
-                records.append(old)
-                continue
-            log(f"[{i}/{total}] {case.key}: running" + ("" if why == "new" else f" ({why})"))
-            t0 = time.perf_counter()
-            heatmap_dir = str(out_dir / "heatmaps") if want_heatmaps else None
-            rec = run_case_isolated(case, scenario.settings, env, heatmap_dir, plan.expected)
-            rec["wall_seconds"] = time.perf_counter() - t0
+                log(f"[{i}/{total}] {plan.case.key}: done earlier ({old.get('status')}), reused")
+                records[i - 1] = old
+            else:
+                yield i, plan, why
+
+    heatmap_dir = str(out_dir / "heatmaps") if want_heatmaps else None
+    finished = cases(todo(), total, scenario.settings, env, heatmap_dir, log)
+    try:
+        for i, plan, rec in finished:
             results.append(rec)
-            records.append(rec)
-            log(f"[{i}/{total}] {case.key}: " + progress_text(rec))
+            records[i - 1] = rec
+            log(f"[{i}/{total}] {plan.case.key}: " + progress_text(rec))
     except KeyboardInterrupt:
+        finished.close()  # a cluster cancels what it still runs
         raise Interrupted(results.finish(complete=False)) from None
     except BaseException:
+        finished.close()
         try:  # an error is on its way out: tidy what can be tidied, without hiding it
             results.finish(complete=False)
         except OSError:
@@ -222,7 +272,7 @@ def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: 
     done = results.finish(complete=True)
     if done:
         log(done)
-    return records
+    return [r for r in records if r is not None]
 
 
 def resume_text(decisions, fresh: bool) -> str:
@@ -242,12 +292,19 @@ def resume_text(decisions, fresh: bool) -> str:
 
 
 def progress_text(rec: dict) -> str:
+    where = f" on {node_text(rec['node'])}" if rec.get("node") else ""
     if rec.get("status") != "ok":
-        return f"FAILED ({rec.get('wall_seconds', 0):.1f} s): {rec.get('reason')}"
-    return (f"ok ({rec.get('wall_seconds', 0):.1f} s): agreement {rec['agreement']:.6f} "
+        took = f"{rec['wall_seconds']:.1f} s" if rec.get("wall_seconds") is not None else "no record came back"
+        return f"FAILED ({took}{where}): {rec.get('reason')}"
+    return (f"ok ({rec.get('wall_seconds') or 0:.1f} s{where}): agreement {rec['agreement']:.6f} "
             f"({rec.get('unexplained')} unexplained), "
             f"{rec['rays_per_second'] / 1e6:.2f} Mrays/s, {rec['memory_bytes'] / 2**20:.1f} MiB, "
             f"build {rec['build_seconds']:.2f} s")
+
+
+def node_text(node: dict) -> str:
+    """A record's `node` (the cluster node that ran it) in a few words."""
+    return f"{node.get('host')} ({node.get('ip')}, node {str(node.get('id'))[:12]})"
 
 
 def summary_table(records: list[dict]) -> str:
