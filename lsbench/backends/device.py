@@ -101,7 +101,7 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def voxelize(self, spec: KernelSpec, n_tris: int, buffers: dict[str, DeviceBuffer],
                  uniforms: dict[str, object], resolution: tuple[int, int, int]) -> None:
-        """Conservative voxelization of n_tris triangles into a grid of `resolution` (thesis 3.4):
+        """Conservative voxelization of n_tris triangles into a grid of `resolution` (Delgado Krämer 2019, 3.4):
         spec's voxelize_column (shaders/common/grid.h) per raster fragment on GLSL, its body once
         per triangle as a compute kernel on OpenCL. Same voxel -> triangle sets either way."""
 

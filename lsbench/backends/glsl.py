@@ -280,7 +280,7 @@ class GLSLDevice(Device):
 
     # --- raster voxelization ---------------------------------------------------------------
     def compile_voxelizer(self, spec: KernelSpec):
-        """Vertex + geometry + fragment program for the conservative voxelizer of thesis 3.4:
+        """Vertex + geometry + fragment program for the conservative voxelizer of Delgado Krämer 2019, 3.4:
         one point per triangle, the geometry shader projects along the dominant axis and emits
         the dilated footprint, each fragment tests its column's depth neighbours."""
         prog = self._programs.get(("raster",) + spec.key)

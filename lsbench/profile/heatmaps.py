@@ -1,7 +1,7 @@
 """Profiling: per-ray work counters as heatmaps (EXR + PNG + JSON summary) and the device clock
 (the timing-stability experiment is lsbench/profile/stability.py).
 
-Heatmaps (thesis Fig. 4 and Fig. 20): the profiling variant of a traversal kernel (COUNT_WORK,
+Heatmaps (Delgado Krämer 2019, Fig. 4 and Fig. 20): the profiling variant of a traversal kernel (COUNT_WORK,
 backends.trace(..., work=True)) writes per ray uint4(iterations, candidate tests, Line Space
 lookups, clock ticks). `write_heatmaps` lays them out as the ray image (row 0 = top, as
 lsbench.inputs.rays.primary_rays) and writes into OUT_DIR:

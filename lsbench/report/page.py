@@ -1,6 +1,6 @@
 """Static HTML report of one run: index.html + PNG charts, opens from disk (no network, no JS).
 
-Sections follow the thesis' evaluation (chapter 6): the environment, Tables 1-3
+Sections follow the thesis' (Delgado Krämer 2019) evaluation (chapter 6): the environment, Tables 1-3
 (lsbench/report/tables.py), speed against accuracy, build time against memory and the spread of
 the timing repeats (lsbench/report/charts.py), the heatmap gallery (images named in the records'
 `heatmaps`), every case in detail (counts, buffers, counters), and the full text of every failure.

@@ -1,4 +1,4 @@
-"""The thesis' tables (chapter 6) of one run, as HTML: one pivot table per backend and device,
+"""The thesis' (Delgado Krämer 2019) tables (chapter 6) of one run, as HTML: one pivot table per backend and device,
 structures as columns in catalogue order.
 
 - Table 1: FPS (and rays/s) per structure x resolution, per scene.

@@ -66,7 +66,7 @@ def timing_fields(seconds: list[float], clock: str, ray_count: int, is_image: bo
 
 def work_fields(work: np.ndarray) -> dict:
     """Mean traversal iterations, candidate (ray/triangle) tests and Line Space lookups per ray,
-    from the profiling kernel's counters (what papers report per ray; thesis Fig. 4)."""
+    from the profiling kernel's counters (what papers report per ray; Delgado Krämer 2019, Fig. 4)."""
     from lsbench.profile.heatmaps import CHANNELS
 
     means = work.astype(np.float64).mean(axis=0) if len(work) else np.zeros(len(CHANNELS))

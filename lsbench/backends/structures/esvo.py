@@ -1,5 +1,5 @@
 """`esvo`: the octree of `svo` in the compact layout of Laine & Karras (2010) as simplified in
-thesis 5.2.1: one 32-bit child descriptor per internal node (24-bit pointer to the first child,
+Delgado Krämer 2019, 5.2.1: one 32-bit child descriptor per internal node (24-bit pointer to the first child,
 8-bit valid mask, Listing 2), children contiguous in slot order, leaves only on the last level
 with their candidate lists. Traversal: PUSH / ADVANCE / POP in [1,2]^3 with mirrored axes
 (thesis 5.2.2). Kernels: shaders/common/esvo.h (descriptors and traversal) on octree.h, the build

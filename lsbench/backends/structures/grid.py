@@ -1,4 +1,4 @@
-"""`grid`: uniform grid with a triangle list per voxel (thesis 3.3.1), built by conservative
+"""`grid`: uniform grid with a triangle list per voxel (Delgado Krämer 2019, 3.3.1), built by conservative
 voxelization (3.4) in two passes with a prefix sum between them, traversed by 3D-DDA.
 Kernels: shaders/common/grid.h (voxelization, the DDA walk and the grid's voxel visit) on
 scene.h and trace.h. Device.voxelize runs the voxelization, through the raster pipeline or as a

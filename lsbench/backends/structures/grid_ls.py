@@ -1,4 +1,4 @@
-"""`grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (thesis 3.3.3,
+"""`grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (Delgado Krämer 2019, 3.3.3,
 5.1, Algorithm 2). Build: the grid's voxel lists (grid.build_voxel_lists), a compaction of the
 voxels that get a Line Space (flags -> scan: voxel -> Line Space index), their cells (voxel box +
 list range), then linespace.build_linespaces. Kernels: shaders/common/grid_ls.h (the build steps

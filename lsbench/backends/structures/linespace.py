@@ -1,4 +1,4 @@
-"""Candidate-list Line Spaces for a set of cells (thesis 3.3.3, 4, 5.1), built on the device.
+"""Candidate-list Line Spaces for a set of cells (Delgado Krämer 2019, 3.3.3, 4, 5.1), built on the device.
 
 Written once for every structure that puts Line Spaces into its cells: `grid-ls` passes the
 voxels that hold candidates, a later `svo-ls` / `esvo-ls` passes its octree leaves. A cell is a

@@ -1,4 +1,4 @@
-"""`svo-ls` and `esvo-ls`: the adaptive Line Space (thesis 4, 5.1, Algorithm 3): the octrees of
+"""`svo-ls` and `esvo-ls`: the adaptive Line Space (Delgado Krämer 2019, 4, 5.1, Algorithm 3): the octrees of
 `svo` (node pool) and `esvo` (Laine & Karras descriptors) with a candidate-list Line Space in
 their leaves.
 

@@ -1,5 +1,5 @@
 """`svo`: sparse voxel octree with a node pool of 8 child indices per node, leaves only on the
-last level, a candidate list per leaf, stack traversal (thesis 3.3.2, Algorithm 1).
+last level, a candidate list per leaf, stack traversal (Delgado Krämer 2019, 3.3.2, Algorithm 1).
 Kernels: shaders/common/octree.h (the build shared with `esvo`, the leaf handling) and svo.h
 (the node-pool nodes and their traversal), on scene.h and trace.h.
 

@@ -1,5 +1,5 @@
 // `esvo`: the octree of svo.h in the compact layout of Laine & Karras (2010) as simplified in
-// thesis 5.2.1: one 32-bit child descriptor per internal node, a 24-bit pointer to its first
+// Delgado Kraemer 2019, 5.2.1: one 32-bit child descriptor per internal node, a 24-bit pointer to its first
 // child above an 8-bit valid mask (Listing 2; no far bit, no contours, no leaf mask: leaves
 // exist only on the last level, so the level says what a child is). The children of a node
 // are contiguous in slot order, child k at pointer + popcount(mask below k); on the last

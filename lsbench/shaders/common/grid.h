@@ -1,4 +1,4 @@
-// Uniform grid (thesis 3.3.1): conservative voxelization (3.4) and the 3D-DDA walk (Amanatides &
+// Uniform grid (Delgado Kraemer 2019, 3.3.1): conservative voxelization (3.4) and the 3D-DDA walk (Amanatides &
 // Woo 1987) that grid and grid-ls share. Needs geometry.h and scene.h (grid space); the traversal
 // also trace.h, and for grid-ls linespace.h and grid_ls.h after this file.
 //

@@ -1,4 +1,4 @@
-// `grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (thesis 3.3.3,
+// `grid-ls`: uniform grid whose non-empty voxels hold a candidate-list Line Space (Delgado Kraemer 2019, 3.3.3,
 // 5.1, Algorithm 2): the build steps that pick the voxels and describe them as Line Space cells,
 // and the lookup the grid walk (grid.h) makes in such a voxel. The trace kernel is grid.h's
 // trace_grid_kernel with LEAF_LINE_SPACE; it needs geometry.h, scene.h, linespace.h, trace.h and

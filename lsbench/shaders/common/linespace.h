@@ -1,4 +1,4 @@
-// Candidate-list Line Space (thesis 3.3.3, Listing 1; Keul, Mueller, Lemke 2016), written once for
+// Candidate-list Line Space (Delgado Kraemer 2019, 3.3.3, Listing 1; Keul, Mueller, Lemke 2016), written once for
 // every structure whose cells get a Line Space (grid-ls voxels, svo-ls / esvo-ls octree leaves).
 // Needs geometry.h; the count and fill kernels also scene.h (cells are boxes in grid space).
 //

@@ -1,4 +1,4 @@
-// Sparse voxel octrees over the voxel lists of grid.h: the build both octrees share (thesis
+// Sparse voxel octrees over the voxel lists of grid.h: the build both octrees share (Delgado Kraemer 2019,
 // 3.3.2, 5.2.1) and the leaf handling both traversals share. svo.h (node pool, Algorithm 1) and
 // esvo.h (Laine & Karras descriptors, 5.2) each write their nodes and walk them; octree_ls.h adds
 // the Line Space of a leaf (svo-ls, esvo-ls). Needs geometry.h; the leaf handling also scene.h and

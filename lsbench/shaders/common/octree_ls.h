@@ -1,4 +1,4 @@
-// `svo-ls` / `esvo-ls`: the adaptive Line Space (thesis 4, 5.1, Algorithm 3): the octrees of
+// `svo-ls` / `esvo-ls`: the adaptive Line Space (Delgado Kraemer 2019, 4, 5.1, Algorithm 3): the octrees of
 // svo.h / esvo.h with a candidate-list Line Space (linespace.h) in their leaves. This file holds
 // the build steps between the octree and the Line Space build, and the lookup that octree.h's
 // oct_test_leaf makes for every leaf either traversal meets. Needs geometry.h and octree.h; the

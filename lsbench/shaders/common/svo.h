@@ -1,4 +1,4 @@
-// `svo`: the node-pool octree (thesis 3.3.2, Algorithm 1): 8 uints per internal node, written by
+// `svo`: the node-pool octree (Delgado Kraemer 2019, 3.3.2, Algorithm 1): 8 uints per internal node, written by
 // the shared build of octree.h, and its stack traversal. Needs geometry.h and octree.h; the
 // traversal also scene.h and trace.h before octree.h (svo-ls: linespace.h too, octree_ls.h after).
 //

@@ -1,4 +1,4 @@
-// What every traversal shares (thesis 3.3: all structures answer the same closest-hit query):
+// What every traversal shares (Delgado Kraemer 2019, 3.3: all structures answer the same closest-hit query):
 // rays and hits, the closest-hit rule, the work counters of profiling builds, the ray in grid
 // space, and the one loop that tests a cell's candidate list, whatever the cell (grid voxel,
 // grid-ls voxel, octree leaf) and wherever its list lives (voxel_tris or a Line Space shaft).

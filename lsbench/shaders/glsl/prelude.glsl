@@ -38,7 +38,7 @@
 #define ATOMIC_OR(lvalue, v) atomicOr(lvalue, v)
 #define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
 #define LANG_GLSL 1
-// Device clock for the profiling counters (COUNT_WORK builds; thesis 6.3, Fig. 20b):
+// Device clock for the profiling counters (COUNT_WORK builds; Delgado Kraemer 2019, 6.3, Fig. 20b):
 // `uint c0 = CLOCK_START(); ... CLOCK_ELAPSED(c0)` gives uint ticks, a 32-bit difference that
 // stays right across one wrap of the low word. The tick source CLOCK_NOW() is picked in
 // common/trace.h, after the kernel's defines: clock2x32ARB().x where USE_CLOCK is set (the

@@ -1,4 +1,4 @@
-// Raster voxelizer, stage 2 (thesis 3.4): project the triangle along its dominant normal axis
+// Raster voxelizer, stage 2 (Delgado Kraemer 2019, 3.4): project the triangle along its dominant normal axis
 // and dilate its footprint so that every voxel column it touches gets a fragment. llvmpipe has
 // no conservative rasterization, so the footprint is the triangle's projected bounds grown by
 // half a pixel plus the overlap epsilon (and a snapping margin): a pixel centre lies inside exactly when its column
