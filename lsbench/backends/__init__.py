@@ -58,16 +58,21 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
         "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel()),
     }
     device.finish()
+    device.start_kernel_log()
     t0 = time.perf_counter()
     result = module.build(device, scene_buffers, scene.triangle_count, geometry, params)
     device.finish()
     seconds = time.perf_counter() - t0
+    stats = dict(result.stats)
+    kernel_seconds = device.kernel_seconds()
+    if kernel_seconds is not None:  # device time per build kernel, where the backend has it
+        stats["build_kernel_seconds"] = kernel_seconds
     defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
     if defect.startswith(("drop-reference", "drop-triangle")):
         _plant_dropped_triangle(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None,
                                 line_spaces=defect.startswith("drop-triangle"))
     return Built(structure, device, params, geometry, scene_buffers, result.buffers, result.uniforms,
-                 result.trace_spec, build_seconds=seconds, stats=result.stats)
+                 result.trace_spec, build_seconds=seconds, stats=stats)
 
 
 _warm: set[int] = set()

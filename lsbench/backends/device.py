@@ -135,6 +135,16 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def finish(self) -> None: ...
 
+    # --- device time per kernel (where the build's time goes; `lsbench speedtest --work`) -------
+    def start_kernel_log(self) -> None:
+        """Record the device time of every dispatch from now on, per kernel name. A backend
+        that cannot time one kernel (llvmpipe: GL_TIME_ELAPSED reads 0 for compute) records none."""
+
+    def kernel_seconds(self) -> dict[str, float] | None:
+        """Device seconds per kernel name of the dispatches since start_kernel_log (which ends the
+        log), or None where the backend cannot time a kernel."""
+        return None
+
     @abc.abstractmethod
     def time_dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
                       uniforms: dict[str, object] | None, warmup: int, repeats: int) -> Timing:

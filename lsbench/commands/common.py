@@ -6,6 +6,7 @@ what is allowed, exit 2, before anything runs."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
                                    integer, number, ray_param_text, resolve_ray_params, writable_folder)
@@ -44,6 +45,22 @@ def checked_text(parse):
             raise argparse.ArgumentTypeError(str(exc)) from None
         return text
     return check
+
+
+def writable_file(text: str) -> str:
+    """argparse `type=` for an output file that is written after cases ran (--dump-hits, a
+    speedtest's --out): checked by opening it for appending now, so a measured case is not lost to
+    a failed write; a file that did not exist is removed again."""
+    target = Path(text)
+    try:
+        existed = target.exists()
+        with open(target, "ab"):
+            pass
+        if not existed:
+            target.unlink()
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"cannot write {target} ({exc.strerror or exc})") from None
+    return text
 
 
 def add_scenario_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,11 +1,9 @@
 """`lsbench trace --scene S --structure X --backend B`: build and trace one case, print its record."""
 from __future__ import annotations
 
-import argparse
 import time
-from pathlib import Path
 
-from lsbench.commands.common import add_case_arguments, case_from_args, checked_text, parse_camera
+from lsbench.commands.common import add_case_arguments, case_from_args, checked_text, parse_camera, writable_file
 from lsbench.inputs.checks import writable_folder
 from lsbench.inputs.scenario import RUN_RULES
 
@@ -31,15 +29,7 @@ def setup_arguments(sub) -> None:
 def writable_npz(text: str) -> str:
     """argparse `type=` for --dump-hits: the file must be writable before the case runs, or a
     failed write after tracing would turn a measured case into a failed record."""
-    target = Path(text if text.endswith(".npz") else text + ".npz")  # np.savez adds .npz
-    try:
-        existed = target.exists()
-        with open(target, "ab"):
-            pass
-        if not existed:
-            target.unlink()
-    except OSError as exc:
-        raise argparse.ArgumentTypeError(f"cannot write {target} ({exc.strerror or exc})") from None
+    writable_file(text if text.endswith(".npz") else text + ".npz")  # np.savez adds .npz
     return text
 
 
