@@ -1,0 +1,117 @@
+"""`lsbench speedtest`: one row per structure x backend against Embree in the same worker, a failed
+case as a failed row with its reason, the table of best settings (scenarios/speedtest.toml)."""
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+
+from lsbench import backends
+from lsbench.cli import build_parser
+from lsbench.commands.speedtest import speedtest_cases
+from lsbench.inputs.scenario import load_scenario
+from test_cli import lsbench
+
+TINY = ("cornell", "--size", "32x32", "--structures", "grid", "svo", "--resolution", "16")
+PAIRS = {(s, b) for s in ("grid", "svo") for b in backends.BACKENDS}
+
+
+def table_rows(stdout: str) -> dict[tuple[str, str], list[str]]:
+    """(structure, backend) -> the cells of its line in the printed table."""
+    lines = stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("scene ")) + 2
+    rows = {}
+    for line in lines[start:]:
+        if not line.strip():
+            break
+        cells = line.split()
+        assert (cells[1], cells[2]) not in rows, f"two rows for {cells[1]} {cells[2]}"
+        rows[(cells[1], cells[2])] = cells
+    return rows
+
+
+def test_speedtest_table_json(tmp_path):
+    out = tmp_path / "speed.json"
+    proc = lsbench("speedtest", *TINY, "--work", "--out", out, check=0)
+    header = next(line for line in proc.stdout.splitlines() if line.startswith("scene "))
+    columns = header.split()
+    assert columns[:11] == ["scene", "structure", "backend", "res", "N", "Mrays/s", "Embree", "Mrays/s",
+                            "×", "Embree", "MiB"]
+    printed = table_rows(proc.stdout)
+    assert set(printed) == PAIRS
+    data = json.loads(out.read_text())
+    rows = {(r["structure"], r["backend"]): r for r in data["rows"]}
+    records = {(r["structure"], r["backend"]): r for r in data["records"]}
+    assert set(rows) == set(records) == PAIRS
+    for pair, row in rows.items():
+        rec = records[pair]
+        assert row["status"] == "ok" and row["resolution"] == "16" and row["width"] == 32
+        assert row["agreement"] == 1.0 and row["unexplained"] == 0
+        # x Embree is the worker's own two figures, lsbench's rays/s over Embree's on the same rays
+        assert rec["embree_rays_per_second"] > 0 and rec["rays_per_second"] > 0
+        assert row["x_embree"] == pytest.approx(rec["rays_per_second"] / rec["embree_rays_per_second"])
+        assert row["x_embree"] > 0
+        cells = printed[pair]
+        assert cells[7] == f"{row['x_embree']:.3f}" and cells[10] == "1.000000" and cells[11] == "0"
+        assert cells[-1] == "ok"
+        # --work: steps and candidate tests per ray from the profiling kernel's counters
+        assert row["iterations_per_ray"] > 0 and row["candidate_tests_per_ray"] > 0
+        assert cells[12] == f"{row['iterations_per_ray']:.1f}"
+        if pair[1] == "opencl":  # device time per build kernel from OpenCL event profiling
+            kernels = row["build_kernel_seconds"]
+            assert {"voxelize_count", "voxelize_fill"} <= set(kernels)
+            assert all(s >= 0 for s in kernels.values()) and sum(kernels.values()) <= row["build_seconds"]
+        else:  # llvmpipe times no single compute dispatch
+            assert row["build_kernel_seconds"] is None
+    assert "voxelize_count" in proc.stdout.split("build kernel", 1)[1]
+
+
+def test_speedtest_failed_row_csv(tmp_path):
+    out = tmp_path / "speed.csv"
+    proc = lsbench("speedtest", *TINY, "--resolution", "svo=12", "--out", out, check=1)
+    printed = table_rows(proc.stdout)
+    assert set(printed) == PAIRS
+    for backend in backends.BACKENDS:
+        assert printed[("grid", backend)][-1] == "ok"
+        line = " ".join(printed[("svo", backend)])
+        assert "FAILED: ValueError: octree resolution must be a power of two" in line and "got 12" in line
+    assert "2 of 4 cases failed" in proc.stdout
+    with open(out, newline="") as f:
+        rows = {(r["structure"], r["backend"]): r for r in csv.DictReader(f)}
+    assert set(rows) == PAIRS
+    assert {rows[("svo", b)]["status"] for b in backends.BACKENDS} == {"failed"}
+    assert all("power of two" in rows[("svo", b)]["reason"] for b in backends.BACKENDS)
+    assert all(float(rows[("grid", b)]["x_embree"]) > 0 for b in backends.BACKENDS)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (("--resolution", "bvh=3"), "'bvh' is not a structure"),
+    (("--ls-n", "grid-ls=-1"), "-1 is not"),
+    (("--out", "speed.txt"), "does not end in .json or .csv"),
+    (("--structures", "grid", "--backends", "vulkan"), "invalid choice: 'vulkan'"),
+])
+def test_speedtest_bad_flags(args, needle):
+    proc = lsbench("speedtest", *args, check=2)
+    assert needle in proc.stderr and proc.stdout == ""
+
+
+def test_settings_cover_every_structure_and_backend():
+    """The shipped table of best settings has one for every structure on every backend, on one
+    scene and camera, and the speedtest without arguments runs exactly its cases."""
+    scenario = load_scenario("speedtest")
+    pairs = [(c.structure, c.backend) for c in scenario.cases]
+    assert sorted(pairs) == sorted({(s, b) for s in backends.structure_names() for b in backends.BACKENDS})
+    assert scenario.settings.embree_timing and len({(c.scene, c.camera) for c in scenario.cases}) == 1
+    args = build_parser().parse_args(["speedtest"])
+    s = scenario.settings
+    cases = speedtest_cases(args, scenario, s.width, s.height)
+    assert {c.key for c in cases} == {c.key for c in scenario.cases}
+    # a flag for one structure changes that one only; N only where there is a Line Space
+    args = build_parser().parse_args(["speedtest", "q.ply", "--resolution", "32", "--resolution", "svo=8",
+                                      "--ls-n", "4", "--structures", "grid", "svo", "grid-ls"])
+    got = {(c.structure, c.backend): (c.scene, c.resolution, c.ls_n, c.camera)
+           for c in speedtest_cases(args, scenario, 64, 64)}
+    assert got == {("grid", b): ("q.ply", "32", 0, None) for b in backends.BACKENDS} \
+        | {("svo", b): ("q.ply", "8", 0, None) for b in backends.BACKENDS} \
+        | {("grid-ls", b): ("q.ply", "32", 4, None) for b in backends.BACKENDS}
