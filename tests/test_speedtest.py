@@ -115,3 +115,21 @@ def test_settings_cover_every_structure_and_backend():
     assert got == {("grid", b): ("q.ply", "32", 0, None) for b in backends.BACKENDS} \
         | {("svo", b): ("q.ply", "8", 0, None) for b in backends.BACKENDS} \
         | {("grid-ls", b): ("q.ply", "32", 4, None) for b in backends.BACKENDS}
+
+
+def test_embree_is_timed_between_the_timed_launches(device):
+    """execute.py times Embree once after each timed launch (Device.time_dispatch's `between`),
+    so the two speeds of a case's ratio are taken under the same load."""
+    from lsbench.backends import BuildParams
+    from lsbench.inputs.rays import primary_rays
+    from lsbench.inputs.scenes import load_scene
+
+    scene = load_scene("cornell")
+    rays = primary_rays(scene, 16, 16)
+    built = backends.build(device, "grid", scene, BuildParams(resolution=(8, 8, 8)))
+    try:
+        calls = []
+        timing = backends.time_trace(built, rays, 1, 3, between=lambda: calls.append(len(calls)))
+    finally:
+        built.release()
+    assert calls == [0, 1, 2] and len(timing.seconds) == 3

@@ -141,12 +141,13 @@ def trace(built: Built, rays, work: bool = False) -> Hits:
     return hits
 
 
-def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5) -> Timing:
+def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=None) -> Timing:
     """Device time of the plain (counter-free) trace kernel of the ray set's query, warm-up
-    launches not counted."""
+    launches not counted; `between()` runs after each timed launch, untimed (Device.time_dispatch)."""
     d = built.device
     bufs = _trace_buffers(built, rays, False)
-    timing = d.time_dispatch(for_query(built.trace_spec, rays.query), rays.count, bufs, built.uniforms, warmup, repeats)
+    timing = d.time_dispatch(for_query(built.trace_spec, rays.query), rays.count, bufs, built.uniforms, warmup,
+                             repeats, between)
     _release(d, bufs, ("rays", "hit_prim", "hit_t"))
     return timing
 

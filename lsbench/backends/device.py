@@ -9,6 +9,7 @@ launch.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -147,8 +148,11 @@ class Device(abc.ABC):
 
     @abc.abstractmethod
     def time_dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
-                      uniforms: dict[str, object] | None, warmup: int, repeats: int) -> Timing:
-        """Warm-up launches (not counted: compile, first launch), then `repeats` timed ones."""
+                      uniforms: dict[str, object] | None, warmup: int, repeats: int,
+                      between: Callable[[], object] | None = None) -> Timing:
+        """Warm-up launches (not counted: compile, first launch), then `repeats` timed ones;
+        `between` is called after each timed launch has finished, outside its timing (execute.py
+        times Embree there, so the two figures of a ratio see the same load on a shared machine)."""
 
     # --- device clock of the profiling kernels (COUNT_WORK, shaders/common/trace.h) --------------
     @abc.abstractmethod

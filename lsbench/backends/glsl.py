@@ -206,7 +206,7 @@ class GLSLDevice(Device):
     def finish(self):
         self.ctx.finish()
 
-    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats):
+    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats, between=None):
         prog = self.compile(spec)
         self._bind(prog, spec, n_items, buffers, uniforms)
         gx, gy = self._groups(spec, n_items)
@@ -230,6 +230,8 @@ class GLSLDevice(Device):
                 clock = "GL_TIME_ELAPSED"
             else:
                 seconds.append(wall)
+            if between is not None:
+                between()
         self.check_error(f"timed dispatch of {spec.name}")
         return Timing(seconds, clock)
 

@@ -277,7 +277,7 @@ class OpenCLDevice(Device):
             seconds[name] = seconds.get(name, 0.0) + (event.profile.end - event.profile.start) * 1e-9
         return seconds
 
-    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats):
+    def time_dispatch(self, spec, n_items, buffers, uniforms, warmup, repeats, between=None):
         args = self._args(spec, n_items, buffers, uniforms)
         for _ in range(max(warmup, 1)):
             self._launch(spec, n_items, args)
@@ -287,6 +287,8 @@ class OpenCLDevice(Device):
             ev = self._launch(spec, n_items, args)
             ev.wait()
             seconds.append((ev.profile.end - ev.profile.start) * 1e-9)
+            if between is not None:
+                between()
         return Timing(seconds, "OpenCL event profiling")
 
     # --- prefix sum ------------------------------------------------------------------------

@@ -94,12 +94,6 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         rays = make_rays(case.rays, scene, case.width, case.height, case.camera_object(), case.ray_params)
     rec = new_record(case, settings, env, case_inputs(scene, rays))
     ref_prim, ref_t = truth if truth is not None else embree_closest(scene, rays)
-    if settings.embree_timing:
-        from lsbench.oracle.embree import embree_trace_seconds
-
-        emb = embree_trace_seconds(scene, rays, repeats=3)
-        med = statistics.median(emb)
-        rec.update(embree_trace_seconds=med, embree_rays_per_second=rays.count / med if med > 0 else None)
     built = None
     try:
         device = backends.get_device(case.backend)
@@ -120,8 +114,23 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             rec.update(**work_fields(backends.trace(built, rays, work=True).work), work_counters_error="")
         except (DeviceLimitError, DeviceError) as exc:
             rec.update(work_counters_error=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
-        timing = backends.time_trace(built, rays, settings.warmup, settings.repeats)
+        # Embree traces the same rays once after each timed launch, so the ratio of the two speeds
+        # is taken under one load: timed apart (Embree first, then the build, then the launches),
+        # the ratio of one case swung 3x on the shared 2-core machine (speedtest, issue 16)
+        embree_seconds: list[float] = []
+        time_embree = None
+        if settings.embree_timing:
+            from lsbench.oracle.embree import embree_timer
+
+            timer = embree_timer(scene, rays)
+
+            def time_embree():
+                embree_seconds.append(timer())
+        timing = backends.time_trace(built, rays, settings.warmup, settings.repeats, time_embree)
         rec.update(**timing_fields(timing.seconds, timing.clock, rays.count, rays.width > 0))
+        if embree_seconds:
+            med = statistics.median(embree_seconds)
+            rec.update(embree_trace_seconds=med, embree_rays_per_second=rays.count / med if med > 0 else None)
         if heatmap_dir:
             from lsbench.profile import heatmaps as profile
 
