@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 
+import numpy as np
 import pytest
 
 from lsbench import backends
@@ -133,3 +134,45 @@ def test_embree_is_timed_between_the_timed_launches(device):
     finally:
         built.release()
     assert calls == [0, 1, 2] and len(timing.seconds) == 3
+
+
+def test_launch_order_is_pixel_tiles():
+    """An image's rays go to the device in 8x8 pixel tiles (one work group of 64), other sets as given."""
+    from lsbench.backends import RAY_TILE, launch_order
+    from lsbench.inputs.rays import RaySet
+
+    def image(w, h):
+        return RaySet("primary", np.zeros((w * h, 3), np.float32), np.ones((w * h, 3), np.float32), w, h)
+
+    order = launch_order(image(32, 24))
+    assert sorted(order.tolist()) == list(range(32 * 24))
+    y, x = np.divmod(order, 32)
+    for group in range(len(order) // 64):  # each work group's 64 rays are one 8x8 tile
+        g = slice(64 * group, 64 * group + 64)
+        assert np.ptp(y[g]) == np.ptp(x[g]) == RAY_TILE - 1 and len(set(zip(y[g], x[g]))) == 64
+    assert (order[:8] == np.arange(8)).all() and order[8] == 32  # row by row within a tile
+    edge = launch_order(image(20, 13))  # edge tiles are cut to the image
+    assert sorted(edge.tolist()) == list(range(20 * 13)) and edge[64] == 8
+    assert launch_order(RaySet("given", np.zeros((64, 3), np.float32), np.ones((64, 3), np.float32))) is None
+
+
+@pytest.mark.parametrize("structure,resolution,ls_n", [("grid", (12, 16, 9), 0), ("esvo-ls", (16,) * 3, 2)])
+def test_tiled_trace_equals_given_order(device, structure, resolution, ls_n):
+    """Hits and work counters of an image traced in tiles are those of the same rays traced as
+    given, bit for bit, in the ray set's order."""
+    from lsbench.backends import BuildParams
+    from lsbench.inputs.rays import RaySet, primary_rays
+    from lsbench.inputs.scenes import load_scene
+
+    scene = load_scene("cornell")
+    image = primary_rays(scene, 20, 13)
+    given = RaySet("given", image.origins, image.directions)
+    built = backends.build(device, structure, scene, BuildParams(resolution=resolution, ls_n=ls_n))
+    try:
+        tiled, plain = backends.trace(built, image, work=True), backends.trace(built, given, work=True)
+    finally:
+        built.release()
+    assert (tiled.prim_ids >= 0).mean() > 0.5  # the default view sees the box and its open side
+    np.testing.assert_array_equal(tiled.prim_ids, plain.prim_ids)
+    np.testing.assert_array_equal(tiled.distances, plain.distances)
+    np.testing.assert_array_equal(tiled.work[:, :3], plain.work[:, :3])  # [:, 3] is the clock
