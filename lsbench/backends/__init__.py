@@ -93,9 +93,11 @@ def _warm_up(device: Device) -> None:
 
 # The rays of an image go to the device in RAY_TILE x RAY_TILE pixel tiles, one per work group of
 # 64 items (KernelSpec.local_size), instead of in rows: the lanes of a SIMD group then walk
-# neighbouring cells, nodes and shafts. Measured with `lsbench speedtest` (issue 16, Sponza 256²,
-# interior camera, Embree timed between the launches): esvo-ls 64³ N=2 on PoCL 0.12 -> 0.19-0.20×
-# Embree, grid and esvo unchanged within the noise.
+# neighbouring cells, nodes and shafts. Measured with `lsbench speedtest --repeats 9` (issue 16,
+# Sponza 256², interior camera, Embree timed between the launches, rows/tiles alternated twice):
+# on PoCL every structure gained 2-5 % in × Embree (esvo 256³ 0.311-0.317 -> 0.329-0.332, grid
+# 128³ 0.193-0.195 -> 0.198-0.203, esvo-ls 64³ N=2 0.195-0.200 -> 0.204); on llvmpipe the change
+# stayed inside the run-to-run spread (±10 %).
 RAY_TILE = 8
 
 
