@@ -23,6 +23,7 @@ from pathlib import Path
 
 from lsbench.commands.common import (UsageError, checked_text, parse_camera, parse_size, say,
                                      writable_file)
+from lsbench.inputs.checks import BadValue, ray_param_text, resolve_ray_params
 from lsbench.inputs.scenario import LS_MIN_CANDIDATES, LS_N, RUN_RULES, Case, Scenario
 
 NAME = "speedtest"
@@ -63,7 +64,9 @@ def setup_arguments(sub) -> None:
     p.add_argument("--settings", default=DEFAULT_SETTINGS, metavar="SCENARIO",
                    help="scenario whose cases are the best setting per structure and backend "
                         "(default: the shipped speedtest.toml)")
-    p.add_argument("--rays", type=RUN_RULES["rays"].flag, help="ray set name or .npz file (default primary)")
+    p.add_argument("--rays", type=RUN_RULES["rays"].flag, help="ray set name or .npz file (default the settings')")
+    p.add_argument("--ray-param", type=ray_param_text, action="append", default=[], metavar="KEY=VALUE",
+                   help="a parameter of the ray set, VALUE as in TOML (samples=4); repeatable")
     p.add_argument("--size", type=checked_text(parse_size), help="image size WxH (default the settings')")
     p.add_argument("--camera", type=checked_text(parse_camera),
                    help="eye and target 'ex,ey,ez:tx,ty,tz[:fov]' (default: the settings' camera for "
@@ -114,13 +117,27 @@ def speedtest_cases(args, settings_scenario: Scenario, width: int, height: int) 
         if (c.resolution, c.ls_n, c.ls_min_candidates) not in settings[(c.structure, c.backend)]:
             settings[(c.structure, c.backend)].append((c.resolution, c.ls_n, c.ls_min_candidates))
     camera = parse_camera(args.camera) if args.camera else None
+
+    def ray_set(rays: str, params: tuple) -> tuple[str, tuple]:
+        """--rays / --ray-param over a case's ray set and parameters."""
+        if not (args.rays or args.ray_param):
+            return rays, params
+        rays = args.rays or rays
+        try:
+            return rays, resolve_ray_params("--ray-param: ", rays, dict(args.ray_param))
+        except BadValue as exc:
+            raise UsageError(str(exc)) from None
+
     if args.scenes:
-        scenes = [(expand_scene(s), camera) for s in args.scenes]
+        given = ray_set(settings_scenario.settings.rays, ())
+        if not args.rays and not args.ray_param:
+            given = ray_set(*next(iter((c.rays, c.ray_params) for c in settings_scenario.cases)))
+        scenes = [(expand_scene(s), camera, *given) for s in args.scenes]
     else:
-        scenes = list(dict.fromkeys((c.scene, camera or c.camera) for c in settings_scenario.cases))
-    rays = args.rays or settings_scenario.settings.rays
+        scenes = list(dict.fromkeys((c.scene, camera or c.camera, *ray_set(c.rays, c.ray_params))
+                                    for c in settings_scenario.cases))
     cases = []
-    for scene, cam in scenes:
+    for scene, cam, rays, ray_params in scenes:
         for structure in sorted(wanted, key=backends.display_order):
             line_space = backends.structure_info(structure).line_space
             for backend in chosen_backends:
@@ -137,7 +154,7 @@ def speedtest_cases(args, settings_scenario: Scenario, width: int, height: int) 
                     n = override(args.ls_n, structure, n) if line_space else 0
                     k = override(args.ls_min_candidates, structure, k) if line_space else 0
                     cases.append(Case(scene, structure, backend, str(override(args.resolution, structure, res)),
-                                      n, k, rays, width, height, cam))
+                                      n, k, rays, width, height, cam, ray_params))
     unique = list({c.key: c for c in cases}.values())
     if not unique:
         raise UsageError("no case to run: the settings have none for these structures and backends")
@@ -265,7 +282,7 @@ def run(args) -> int:
         gpu = s.gpu_width is not None and uses_gpu(args.backends or {c.backend for c in base.cases})
         width, height = (s.gpu_width, s.gpu_height) if gpu else (s.width, s.height)
     settings = dataclasses.replace(
-        s, width=width, height=height, rays=args.rays or s.rays, embree_timing=True,
+        s, width=width, height=height, embree_timing=True,
         repeats=args.repeats or s.repeats, warmup=s.warmup if args.warmup is None else args.warmup,
         timeout_seconds=args.timeout or s.timeout_seconds)
     cases = speedtest_cases(args, base, width, height)
@@ -273,7 +290,8 @@ def run(args) -> int:
     env = record_env()
     devices = device_info(c.backend for c in cases)
     plans = plan_cases(scenario, env, devices)  # bad scene or ray files: exit 2 here
-    say(f"lsbench speedtest: {len(cases)} cases, {settings.rays} rays at {width}x{height}, "
+    ray_sets = ", ".join(dict.fromkeys(c.key.split("|")[1] for c in cases))
+    say(f"lsbench speedtest: {len(cases)} cases, rays {ray_sets}, "
         f"settings from {base.path}; {embree_version()} on all usable cores in each case's worker")
     for name, d in devices.items():
         say(f"  {name}: {d.get('device') or 'unavailable: ' + str(d.get('error'))}")
