@@ -147,5 +147,5 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         if built is not None:
             built.release()
     if rec.status != "ok":
-        rec.accuracy = None  # accuracy columns are measured only for an ok case
+        rec.accuracy = rec.classification = None  # accuracy columns are measured only for an ok case
     return rec.to_dict()
