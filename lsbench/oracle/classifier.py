@@ -260,14 +260,16 @@ def classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_d
     labels = np.where(cat == AGREE, "agree", np.where(cat == TIE, "tie", "")).astype(object)
     todo = np.flatnonzero(labels == "")
     labels[todo[max_rays:]] = "unclassified"
-    tris = scene.triangles.astype(np.float64)
-    tri_lo, tri_hi = tris.min(axis=1), tris.max(axis=1)
-    M = float(np.abs(scene.vertices).max())
-    p = np.asarray(prim_ids).astype(np.int64)
-    r = np.asarray(ref_prim_ids).astype(np.int64)
-    t = np.asarray(distances, np.float64)
-    tr = np.asarray(ref_distances, np.float64)
-    for i in todo[:max_rays]:
+    classified = todo[:max_rays]
+    if classified.size:  # the scene in float64 only where some ray disagrees (most cases: none)
+        tris = scene.triangles.astype(np.float64)
+        tri_lo, tri_hi = tris.min(axis=1), tris.max(axis=1)
+        M = float(np.abs(scene.vertices).max())
+        p = np.asarray(prim_ids).astype(np.int64)
+        r = np.asarray(ref_prim_ids).astype(np.int64)
+        t = np.asarray(distances, np.float64)
+        tr = np.asarray(ref_distances, np.float64)
+    for i in classified:
         o = rays.origins[i].astype(np.float64)
         d = rays.directions[i].astype(np.float64)
         m = max(M, float(np.abs(o).max()))
