@@ -37,13 +37,11 @@ class ResultsError(RuntimeError):
 
 
 def write_run_info(run_dir, info: dict) -> Path:
-    """Write RUN_DIR/run.json atomically (a reader never sees half a file)."""
+    """Write RUN_DIR/run.json atomically (a reader never sees half a file; write_lines)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / RUN_INFO
-    tmp = path.with_name(RUN_INFO + ".tmp")
-    tmp.write_text(json.dumps(info, indent=2, sort_keys=True, default=str) + "\n")
-    os.replace(tmp, path)
+    write_lines(path, [json.dumps(info, indent=2, sort_keys=True, default=str)])
     return path
 
 

@@ -20,7 +20,6 @@ from lsbench.results.store import RunResults
 from lsbench.running.execute import case_inputs, execute, failed_record
 
 
-
 class Interrupted(KeyboardInterrupt):
     """Ctrl-C during a run; the message says where the finished cases are."""
 
