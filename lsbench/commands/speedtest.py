@@ -253,7 +253,7 @@ def write_rows(path: Path, rows: list[dict], records: list[dict], info: dict) ->
 def progress_line(i: int, total: int, case: Case, rec: dict, walls: list[float]) -> str:
     """`[i/total] case: ok 3.1 s: 1.23 Mrays/s = 0.45× Embree, ...; ETA 2 min` (the mean wall
     time of the cases so far times the cases left)."""
-    from lsbench.report.format import fmt_seconds
+    from lsbench.report.format import eta_text
 
     row = speed_row(rec)
     label = f"{case.structure} {case.backend} r{case.resolution}" + (f" N{case.ls_n}" if row["ls_n"] else "")
@@ -263,9 +263,7 @@ def progress_line(i: int, total: int, case: Case, rec: dict, walls: list[float])
                 f"({rec.get('unexplained')} unexplained), build {rec['build_seconds']:.2f} s")
     else:
         what = f"FAILED ({rec['wall_seconds']:.1f} s): {rec.get('reason')}"
-    left = total - i
-    eta = f"; ETA {fmt_seconds(left * sum(walls) / len(walls))}" if left else ""
-    return f"[{i}/{total}] {Path(case.scene).stem} {label}: {what}{eta}"
+    return f"[{i}/{total}] {Path(case.scene).stem} {label}: {what}{eta_text(walls, total - i)}"
 
 
 def run(args) -> int:

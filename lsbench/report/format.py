@@ -47,6 +47,14 @@ def fmt_seconds(s) -> str:
     return f"{s * 1e6:.3g} µs"
 
 
+def eta_text(walls: list[float], left: int) -> str:
+    """"; ETA 2.1e+02 s" for a long run's progress line: the mean wall time of the cases run so
+    far times the cases left ("" when none is left or none has run)."""
+    if left <= 0 or not walls:
+        return ""
+    return f"; ETA {fmt_seconds(left * sum(walls) / len(walls))}"
+
+
 def fmt_pct(a) -> str:
     """A fraction as a percentage, 4 significant digits; never "100%" unless exactly 1 (one
     ray in 20,000 that disagrees must not read as full agreement)."""

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from lsbench.inputs.scenario import Case, RunSettings, Scenario
 from lsbench.results.record import reuse_mismatch, result_settings
+from lsbench.report.format import eta_text
 from lsbench.results.store import RunResults
 from lsbench.running.execute import case_inputs, execute, failed_record
 
@@ -253,11 +254,16 @@ def run_scenario(scenario: Scenario, plans: list[CasePlan], out_dir: Path, env: 
 
     heatmap_dir = str(out_dir / "heatmaps") if want_heatmaps else None
     finished = cases(todo(), total, scenario.settings, env, heatmap_dir, log)
+    to_run = sum(1 for _, _, why in decisions if why is not None)
+    walls: list[float] = []
     try:
         for i, plan, rec in finished:
             results.append(rec)
             records[i - 1] = rec
-            log(f"[{i}/{total}] {plan.case.key}: " + progress_text(rec))
+            if rec.get("wall_seconds") is not None:
+                walls.append(rec["wall_seconds"])
+            log(f"[{i}/{total}] {plan.case.key}: " + progress_text(rec)
+                + eta_text(walls, to_run - len(walls)))
     except KeyboardInterrupt:
         finished.close()  # a cluster cancels what it still runs
         raise Interrupted(results.finish(complete=False)) from None
