@@ -134,7 +134,7 @@ def _categories(p, t, r, tr, rel_tol: float, abs_tol: float, query: str = "close
 
 
 def embree_occluded(ref_prim_ids, ref_distances, tmax) -> np.ndarray:
-    """Embree's any-hit answer from its closest hit (OCCLUDED is broken in embreex): a hit
+    """Embree's any-hit answer from its cached closest hit (oracle/embree.py): a hit
     before tmax. Its closest hit already lies at or past tmin (oracle/embree.py)."""
     r = _prim_array(ref_prim_ids)
     return (r >= 0) & (np.asarray(ref_distances, np.float64) < _tmax_array(tmax, r.shape[0]))
