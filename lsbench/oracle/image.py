@@ -144,11 +144,11 @@ def image_accuracy(scene, rays, prim_ids, distances, ref_prim_ids, ref_distances
     de = delta_e(scene, rays, prim_ids, ref_prim_ids)
     fields = dict(summarize(de).to_dict(), image_files={})
     if out_dir:
-        from lsbench.report.format import slug
+        from lsbench.profile.heatmaps import case_slug  # the heatmaps' file names: side by side
 
         categories = verify.classify(prim_ids, distances, ref_prim_ids, ref_distances,
                                      rel_tol=accuracy.rel_tol, abs_tol=accuracy.abs_tol,
                                      query=rays.query, tmax=rays.tmax_array, tmin=rays.tmin)
-        fields["image_files"] = write_images(out_dir, slug(case_key, empty="case"), scene, rays,
+        fields["image_files"] = write_images(out_dir, case_slug(case_key), scene, rays,
                                              prim_ids, de, categories)
     return fields

@@ -153,11 +153,18 @@ def image_accuracy_section(records, files: Files) -> list[str]:
         out.append(f"<p class='small'>No ΔE images in this run ({len(measured)} cases have ΔE figures; "
                    "the images are written with the heatmaps: <code>lsbench run --heatmaps</code>).</p>")
         return out
+    measured = [r for r in records if r.get("image_jnd_pixels") is not None]
+    seen = [r for r in measured if r["image_jnd_pixels"] > 0]
+    out.append(f"<p><b>{len(seen)}</b> of {len(measured)} camera cases have pixels past the JND"
+               + (": " + e(", ".join(case_label(r, True) for r in seen)) if seen else "") + ". Within a row, "
+               "the cases with the most such pixels come first.</p>")
     for (scene, workload, backend), recs in groups.items():
         out.append(f"<h3>{e(scene)} — {e(workload)} — {e(backend)}</h3><div class='gallery'>")
-        for r in recs:
+        for r in sorted(recs, key=lambda r: -(r.get("image_jnd_pixels") or 0)):  # stable: catalogue order
+            planted = f"<br>planted defect: {e(str(r['planted_defect']))}" if r.get("planted_defect") else ""
             caption = (f"{e(case_label(r))}<br>ΔE mean {r.get('image_delta_e_mean') or 0:.3g}, max "
-                       f"{r.get('image_delta_e_max') or 0:.3g}, {r.get('image_jnd_pixels') or 0} px &gt; 2.3")
+                       f"{r.get('image_delta_e_max') or 0:.3g}, {r.get('image_jnd_pixels') or 0} px &gt; 2.3"
+                       + planted)
             pair = [r["image_files"].get(k) for k in ("pixel_errors", "delta_e")]
             out.append("<div class='pair'>" + "".join(_figure(files, rel, caption if k else "", name)
                                                       for k, (rel, name) in enumerate(zip(pair, ("pixels", "ΔE")))
