@@ -210,15 +210,20 @@ def chart_workload(records, path: Path, title: str):
         return None
     scenes = sorted({scene_name(r) for r in recs})
     sizes = [sum(scene_name(r) == s for r in recs) for s in scenes]
-    fig = _figure(9, 1.0 + sum(0.24 * n + 0.7 for n in sizes))
+    fig = _figure(9, 1.0 + sum(0.24 * n + 0.9 for n in sizes))
+    fig.set_layout_engine("constrained")  # panel titles, tick labels and the title never overlap
     axes = fig.subplots(len(scenes), 1, squeeze=False, gridspec_kw={"height_ratios": sizes})[:, 0]
     for ax, scene in zip(axes, scenes):
         rs = sorted((r for r in recs if scene_name(r) == scene),
                     key=lambda r: (display_order(r.get("structure")), r.get("ls_n") or 0,
                                    resolution_order(r.get("resolution")), r.get("backend", "")))
         ys = np.arange(len(rs))
-        ax.barh(ys, [r["rays_per_second"] for r in rs], color=[structure_color(r.get("structure")) for r in rs],
-                hatch=None, edgecolor=["k" if r.get("backend") == "opencl" else "none" for r in rs], height=0.7)
+        speeds = [r["rays_per_second"] for r in rs]
+        # linear from 0: a bar's length is its speed (a log axis would make lengths meaningless)
+        ax.barh(ys, speeds, color=[structure_color(r.get("structure")) for r in rs],
+                edgecolor=["k" if r.get("backend") == "opencl" else "none" for r in rs], height=0.7)
+        for y, v in zip(ys, speeds):
+            ax.annotate(fmt_si(v), (v, y), xytext=(3, 0), textcoords="offset points", va="center", fontsize=6)
         ax.set_yticks(ys)
         ax.set_yticklabels([case_label(r) for r in rs], fontsize=7)
         ax.invert_yaxis()
@@ -227,12 +232,13 @@ def chart_workload(records, path: Path, title: str):
             ax.axvline(float(np.median(emb)), color="#444", ls="--", lw=1.2,
                        label=f"Embree (CPU) {fmt_si(float(np.median(emb)), 'rays/s')}")
             ax.legend(fontsize=7, loc="lower right")
-        ax.set_xscale("log")
-        ax.xaxis.set_major_formatter(_si_formatter())
-        ax.xaxis.set_minor_formatter(_si_formatter())
-        ax.grid(True, axis="x", which="both", alpha=0.3)
+        from matplotlib.ticker import FuncFormatter
+
+        ax.set_xlim(0, max(speeds + emb) * 1.12)
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: fmt_si(x) if x else "0"))
+        ax.grid(True, axis="x", alpha=0.3)
         ax.set_title(f"{scene} — {rs[0].get('ray_count')} rays", fontsize=9, loc="left")
-    axes[-1].set_xlabel("rays/s (log; black edge: opencl)")
+    axes[-1].set_xlabel("rays/s (black edge: opencl)")
     fig.suptitle(title, fontsize=10)
     return _save(fig, path)
 

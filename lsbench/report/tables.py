@@ -151,6 +151,8 @@ def speed_cell(rec, baselines: Baselines, min_agree: float | None, fps=True, mem
     if notes:
         lines.append(" · ".join(notes))
     agree, css = _agree_note(rec, min_agree)
+    if rec.get("image_jnd_pixels"):  # a disagreement a person would see (lsbench/oracle/image.py)
+        agree.append(f"{rec['image_jnd_pixels']} px ΔE>2.3")
     return Cell(lines + agree, value=speed, css=css, title="\n".join([rec.get("key", ""), *titles]))
 
 
