@@ -484,3 +484,24 @@ def test_image_accuracy_shown_with_its_numbers_and_missing_files_named(tmp_path)
     assert "missing: heatmaps/gone_delta_e.png" in section
     assert "ΔE&gt;2.3 px" in page  # the All cases table has the column
     assert_every_link_resolves(index)
+
+
+def test_heatmap_rows_stand_when_files_are_missing(tmp_path):
+    """A heatmap file or EXR gone from the run folder: the row names it, every link still
+    resolves (a row at one shared scale needs every case's EXR; without, each case's own PNG)."""
+    import matplotlib.image
+
+    run = tmp_path / "run"
+    (run / "heatmaps").mkdir(parents=True)
+    matplotlib.image.imsave(run / "heatmaps" / "grid_iterations.png", np.eye(8), cmap="inferno")
+    have = fake_record("cornell", "grid", "opencl", 16, heatmaps={
+        "exr": "heatmaps/grid.exr", "iterations": "heatmaps/grid_iterations.png"})
+    gone = fake_record("cornell", "svo", "opencl", 16, heatmaps={"iterations": "heatmaps/svo_iterations.png"})
+    for r in (have, gone):
+        store.append_record(run, r)
+    index = report.write_report(run)
+    section = index.read_text().split("id='heatmaps'")[1].split("id='cases'")[0]
+    assert "src='heatmaps/grid_iterations.png'" in section
+    assert "missing: heatmaps/svo_iterations.png" in section and "own scale" in section
+    assert "missing: heatmaps/grid.exr" in section  # under 'more', not a broken link
+    assert_every_link_resolves(index)
