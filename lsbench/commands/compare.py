@@ -33,6 +33,18 @@ def setup_arguments(sub) -> None:
     p.set_defaults(func=run)
 
 
+# Worst first: a failure, then lost accuracy, a slowdown, more memory; then refused and missing
+# cases; then the rest, slowest ratio first (the report links compare.html from the index).
+SEVERITY = ("failure", "accuracy", "speed", "memory")
+
+
+def severity(case) -> tuple:
+    worst = min((SEVERITY.index(v) for v in case.verdicts if v in SEVERITY), default=len(SEVERITY))
+    missing = case.base is None or case.head is None
+    ratio = case.speed_ratio if case.speed_ratio is not None else float("inf")
+    return (worst, not case.refused, not missing, ratio, case.key)
+
+
 def run(args) -> int:
     from lsbench.compare.verdicts import compare_runs, format_table, write_compare_html
 
@@ -42,6 +54,7 @@ def run(args) -> int:
     except FileNotFoundError as exc:
         print(f"lsbench compare: error: {exc}", file=sys.stderr)
         return 2
+    res.cases.sort(key=severity)
     print(format_table(res))
     if args.report:
         print(f"wrote {write_compare_html(res, Path(args.head) / 'compare.html')}")

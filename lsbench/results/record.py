@@ -83,6 +83,10 @@ class Record:
     linespace_lookups_per_ray: float | None = None
     work_counters_error: str | None = None
     heatmaps: dict = field(default_factory=dict)
+    image_delta_e_mean: float | None = None  # lsbench/oracle/image.py
+    image_delta_e_max: float | None = None
+    image_jnd_pixels: int | None = None
+    image_files: dict = field(default_factory=dict)
     work_clock: dict | None = None
     wall_seconds: float | None = None
     schema_version: int = SCHEMA_VERSION

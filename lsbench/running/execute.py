@@ -136,6 +136,10 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
 
             rec.update(heatmaps=profile.write_heatmaps(built, rays, heatmap_dir, case.key),
                        work_clock=profile.clock_info(device))
+        from lsbench.oracle.image import image_accuracy  # ΔE of the shaded picture (camera rays only)
+
+        rec.update(**image_accuracy(scene, rays, hits.prim_ids, hits.distances, ref_prim, ref_t,
+                                    rec.accuracy, heatmap_dir, case.key))
         rec.update(status="ok", reason="")
     except (DeviceLimitError, DeviceError, ValueError, MemoryError) as exc:
         rec.update(status="failed", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
