@@ -14,11 +14,15 @@ from .kernels import SHADER_ROOT, KernelSpec, kernel_defines, numbered, read_com
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # Loop iterations per ray in one traversal launch on llvmpipe (Device.loop_budget): its limit of
 # 65535 (LP_MAX_TGSI_LOOP_ITERATIONS, shaders/common/scene.h) counts every loop of an invocation
-# and is shared by a SIMD group of lanes, whose loops run as long as their longest lane (the
-# candidate loops of diverging lanes add up), so a lane gets a quarter of it, less what the walks
-# run besides steps and tests (the stack restore, the probe). A group that still passes the limit
-# is rerun from its saved state with half the budget (backends/__init__.py: trace).
-LLVMPIPE_LOOP_BUDGET = 16000
+# and is shared by a SIMD group of lanes (8 with AVX2, 16 with AVX-512), whose loops run while any
+# lane runs (the candidate loops of diverging lanes add up), so a lane gets a 16th of it, which
+# also leaves room for what the walks run besides steps and tests (the stack restore, the probe).
+# A group that still passes the limit is rerun from its saved state with half the budget
+# (backends/__init__.py: trace). Smaller slices were also faster here: BMW 32^3, 20,000 incoherent
+# rays, svo 1.91 / 1.53 / 1.27 / 1.03 s and grid 0.94 / 0.68 / 0.52 / 0.36 s at B = 16000 / 8000 /
+# 4000 / 2000 (13-98 launches): the first launch ends every ray at B instead of waiting for a
+# group's longest, and the long rays then share SIMD groups. 4000 keeps the launches few.
+LLVMPIPE_LOOP_BUDGET = 4000
 HOST_CLOCK = "host clock around glFinish"
 SCAN_BLOCK = 256  # items per work group in the prefix-sum kernels (2 per invocation)
 
