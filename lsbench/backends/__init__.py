@@ -181,6 +181,11 @@ def slice_budget(device: Device, budget=DEVICE_BUDGET) -> int | None:
     return None if budget is None else int(budget)
 
 
+def _dispatch(d: Device, *args) -> None:
+    """An untimed slice launch (_run_slices' `launch`)."""
+    d.dispatch(*args)
+
+
 def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int, launch) -> int:
     """Traversal in bounded slices (shaders/common/trace.h): launch the kernel over the unfinished
     rays, `budget` loop iterations each, until every ray has its hit; returns the launches made.
@@ -222,8 +227,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
             slices = 1
         else:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget,
-                                 lambda dev, *args: dev.dispatch(*args))
+            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget, _dispatch)
         d.finish()
         order = launch_order(rays)
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
@@ -255,7 +259,7 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
         bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
         spec = sliced(spec)
         for _ in range(max(warmup, 1)):
-            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, lambda dev, *args: dev.dispatch(*args))
+            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, _dispatch)
         d.finish()
         seconds, clocks = [], set()
         for _ in range(repeats):
