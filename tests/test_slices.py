@@ -40,13 +40,14 @@ def _bits(hits):
     return hits.prim_ids, hits.distances.view(np.uint32)
 
 
-@pytest.mark.parametrize("query", ["closest", "any"])
+@pytest.mark.parametrize("backend,query", [("opencl", "closest"), ("opencl", "any"), ("glsl", "closest")])
 @pytest.mark.parametrize("structure", STRUCTURES)
-def test_slices_give_the_hits_of_one_launch(tiny_rays, structure, query):
+def test_slices_give_the_hits_of_one_launch(tiny_rays, structure, backend, query):
     scene, sets = tiny_rays
     rays = sets[query]
-    device = backends.get_device("opencl")
-    assert device.loop_budget is None  # PoCL: one launch runs whole rays unless a budget is forced
+    device = backends.get_device(backend)
+    if backend == "opencl":
+        assert device.loop_budget is None  # PoCL: one launch runs whole rays unless a budget is forced
     built = backends.build(device, structure, scene, BuildParams(**structure_params(structure, cubic_res=16)))
     try:
         whole = backends.trace(built, rays, budget=None)
