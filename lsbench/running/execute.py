@@ -103,6 +103,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
         hits = backends.trace(built, rays)
+        rec.update(trace_slices=hits.slices)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
         rec.accuracy, rec.classification = judge_hits(scene, rays, hits.prim_ids, hits.distances,
                                                       ref_prim, ref_t, rel_tol=settings.rel_tol)
