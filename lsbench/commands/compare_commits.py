@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from lsbench.commands.compare import add_verdict_arguments
-from lsbench.inputs.checks import writable_folder
+from lsbench.inputs.checks import integer, writable_folder
 
 NAME = "compare-commits"
 HELP = "run a scenario at two git revisions and compare"
@@ -21,6 +21,9 @@ def setup_arguments(sub) -> None:
     q.add_argument("rev_b", metavar="REV_B")
     q.add_argument("scenario", metavar="SCENARIO")
     add_verdict_arguments(q)
+    q.add_argument("--processes", type=integer(1).flag, default=1, metavar="K",
+                   help="run the scenario K times at each revision (alternating), each run one sample "
+                        "per case: repeats across processes and builds (default 1: the repeats of one)")
     q.add_argument("--out", type=writable_folder, default=None, metavar="DIR",
                    help="where both runs go (default reports/compare-A-B-TIME)")
     q.set_defaults(func=run)
@@ -32,7 +35,8 @@ def run(args) -> int:
 
     try:
         res = compare_commits(args.rev_a, args.rev_b, args.scenario, factor=args.factor,
-                              out_dir=args.out, alpha=args.alpha, only_common=args.only_common)
+                              out_dir=args.out, alpha=args.alpha, only_common=args.only_common,
+                              processes=args.processes)
     except (ValueError, RuntimeError, subprocess.CalledProcessError) as exc:
         msg = getattr(exc, "stderr", None) or exc
         print(f"lsbench compare-commits: error: {str(msg).strip()}", file=sys.stderr)
