@@ -126,7 +126,7 @@ def test_runs_sort_by_commit_order_not_by_appending(tmp_path, linear_repo):
     runs = history.read_history(db)
     assert [r.commit for r in runs][::2] == shas  # two runs per commit, in commit order
     pts = history.series(runs)[("bench-host", "grid|64", GL_DEV)]
-    assert [p.commit for p in pts] == shas and all(len(p.process_medians) == 2 for p in pts)
+    assert [p.commit for p in pts] == shas and all(len(p.process_figures) == 2 for p in pts)
 
 
 # ---------------------------------------------------------------- step detection
@@ -242,6 +242,12 @@ def test_run_appends_to_the_history(tmp_path, capsys):
     (run,) = history.read_history(db)
     assert run.records == store.read_run(tmp_path / "run")[1]
     assert run.info["history"]["source"] == "run"
+    # the history page is rewritten, and the run's report links it
+    assert (db / "index.html").is_file()
+    from lsbench.report import page
+    index = page.write_report(tmp_path / "run")
+    link = re.search(r"href='([^']+)'>history page</a>", index.read_text()).group(1)
+    assert (index.parent / link).resolve() == (db / "index.html").resolve()
 
 
 # ---------------------------------------------------------------- the page

@@ -35,15 +35,17 @@ def setup_arguments(sub) -> None:
     from lsbench.compare.verdicts import DEFAULT_FACTOR
     p.add_argument("--factor", type=FACTOR.flag, default=DEFAULT_FACTOR,
                    help="a step past this rays/s ratio is a slowdown or speed-up (default %(default)s)")
+    from lsbench.results.history import STATISTICS
+    p.add_argument("--statistic", choices=sorted(STATISTICS), default="median",
+                   help="each run's figure of a case: the median repeat (its record's rays/s) or the "
+                        "best (fastest) one, the stabler figure on a shared machine (default %(default)s)")
     p.add_argument("--html", metavar="FILE.html", help="where the page goes (default HISTORY_DIR/index.html)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from lsbench.compare.commits import backfill
-    from lsbench.compare.history import analyse, summary_text
     from lsbench.paths import source_checkout
-    from lsbench.report.history_page import write_history_page
     from lsbench.results import history
 
     hist = Path(args.history)
@@ -62,13 +64,27 @@ def run(args) -> int:
         msg = getattr(exc, "stderr", None) or exc
         print(f"lsbench history: error: {str(msg).strip()}", file=sys.stderr)
         return 2
-    cases = analyse(history.series(runs), factor=args.factor)
-    text = summary_text(cases, args.factor)
-    print(text)
+    page = write_page(hist, runs, Path(args.html) if args.html else None, args.factor, args.statistic,
+                      echo=True)
+    print(f"wrote {page}")
+    return 0
+
+
+def write_page(hist, runs=None, html=None, factor=None, statistic: str = "median", echo=False) -> Path:
+    """Analyse the database and write its page (default HIST/index.html); echo prints the summary."""
+    from lsbench.compare.history import analyse, summary_text
+    from lsbench.compare.verdicts import DEFAULT_FACTOR
+    from lsbench.report.history_page import write_history_page
+    from lsbench.results import history
+
+    hist = Path(hist)
+    runs = history.read_history(hist) if runs is None else runs
+    factor = factor or DEFAULT_FACTOR
+    cases = analyse(history.series(runs, statistic), factor=factor)
+    text = summary_text(cases, factor, statistic)
+    if echo:
+        print(text)
     run_dirs: dict[tuple, list[Path]] = {}
     for r in runs:
         run_dirs.setdefault((r.machine, r.commit), []).append(r.path)
-    page = write_history_page(cases, run_dirs, Path(args.html) if args.html else hist / "index.html",
-                              args.factor, text)
-    print(f"wrote {page}")
-    return 0
+    return write_history_page(cases, run_dirs, html or hist / history.PAGE, factor, text, statistic)

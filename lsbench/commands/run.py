@@ -111,7 +111,10 @@ def run_scenario_file(args):
 
 
 def _run_into(out: Path, args, scenario, devices: dict, plans, env: dict, cases=None, info: dict | None = None):
-    """Run the planned cases into `out` (locked), writing run.json (with `info` added)."""
+    """Run the planned cases into `out` (locked), writing run.json (with `info` added, and the
+    history database it will go to: the report links that history's page)."""
+    if getattr(args, "history", None):
+        info = dict(info or {}, history_dir=str(Path(args.history).resolve()))
     from lsbench.running.runner import run_locally, run_scenario
 
     if not args.fresh:  # a --fresh run replaces run.json with results.jsonl, once done
@@ -134,6 +137,8 @@ def run(args) -> int:
             say(f"history: stored as {append_run(args.history, args.run_dir, source_checkout() or '.')}")
         except HistoryError as exc:
             raise UsageError(f"--history {args.history}: {exc}") from None
+        from lsbench.commands.history import write_page
+        say(f"history page: {write_page(args.history)}")
     failed = [r for r in records if r.get("status") != "ok"]
     if failed and not args.allow_failed:
         say(f"\n{len(failed)} of {len(records)} cases failed (exit 1; --allow-failed exits 0)")

@@ -87,12 +87,6 @@ class WorktreeRunner:
             self.worktrees[sha] = wt
         return self.worktrees[sha]
 
-    def release(self, sha: str) -> None:
-        """Remove the worktree of sha now (a long backfill keeps one at a time)."""
-        wt = self.worktrees.pop(sha, None)
-        if wt is not None:
-            _git(self.repo_dir, "worktree", "remove", "--force", str(wt), check=False)
-
     def run(self, sha: str, run_dir: Path, rev: str | None = None) -> Path:
         """Run the scenario at sha into run_dir; RuntimeError when it left no records. A run that
         exits non-zero (e.g. a case failed) still leaves records, which count."""
@@ -154,10 +148,13 @@ def scenario_name(scenario) -> str | None:
 
 def backfill(history_dir, rev_range: str, scenario, processes: int = 1, repo_dir=None, out_dir=None,
              extra_args=(), stream=None, scenes=None) -> list[Path]:
-    """Run SCENARIO `processes` times at every commit of rev_range (oldest first) and append each
-    run to the history database; commits that already hold `processes` runs of this scenario on
-    this machine are skipped (an interrupted backfill resumes). Returns the stored runs' folders.
-    The run folders themselves go to out_dir (default: a temporary folder, removed)."""
+    """Run SCENARIO `processes` times at every commit of rev_range and append each run to the
+    history database; commits that already hold `processes` runs of this scenario on this machine
+    get only the runs they lack (an interrupted backfill resumes). The runs go in rounds, one run
+    per commit each, oldest to newest and back again: a drift of the machine's load over the
+    backfill then falls on old and new commits alike instead of reading as a step. Returns the
+    stored runs' folders. The run folders themselves go to out_dir (default: a temporary folder,
+    removed)."""
     from lsbench.results import history
 
     stream = stream or sys.stderr
@@ -166,23 +163,25 @@ def backfill(history_dir, rev_range: str, scenario, processes: int = 1, repo_dir
     hist = history.open_history(history_dir, create=True)
     name = scenario_name(scenario)
     machine = slug(socket.gethostname())
+    have = {sha: history.runs_at(hist, machine, sha, name) for sha in shas}
+    for n, sha in enumerate(shas, 1):
+        if have[sha] >= processes:
+            print(f"backfill {n}/{len(shas)} {sha[:10]}: {have[sha]} runs of {name} stored, skipped",
+                  file=stream, flush=True)
     keep = out_dir is not None
     work = Path(out_dir).resolve() if keep else Path(tempfile.mkdtemp(prefix="lsbench-backfill-"))
     stored = []
     try:
         with WorktreeRunner(repo_dir, scenario, scenes, extra_args, stream) as runner:
-            for n, sha in enumerate(shas, 1):
-                have = history.runs_at(hist, machine, sha, name)
-                if have >= processes:
-                    print(f"backfill {n}/{len(shas)} {sha[:10]}: {have} runs of {name} stored, skipped",
-                          file=stream, flush=True)
-                    continue
-                for k in range(have, processes):
+            for k in range(processes):
+                order = list(enumerate(shas, 1))
+                for n, sha in (order if k % 2 == 0 else order[::-1]):
+                    if have[sha] > k:
+                        continue
                     run_dir = runner.run(sha, work / f"{n:03d}-{sha[:12]}-p{k + 1}")
                     stored.append(history.append_run(hist, run_dir, repo_dir, source="backfill"))
-                    print(f"backfill {n}/{len(shas)} {sha[:10]}: run {k + 1} of {processes} stored",
+                    print(f"backfill round {k + 1}/{processes}, commit {n}/{len(shas)} {sha[:10]}: stored",
                           file=stream, flush=True)
-                runner.release(sha)
     finally:
         if not keep:
             shutil.rmtree(work, ignore_errors=True)

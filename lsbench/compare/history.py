@@ -63,8 +63,8 @@ def within_commit_sigma(points: list[CommitPoint]) -> float:
     sqrt(n). A floor for the noise estimate only: repeats in one process understate it."""
     sds = []
     for p in points:
-        if len(p.process_medians) >= 2:
-            sds.append(float(np.std(np.log(p.process_medians), ddof=1)))
+        if len(p.process_figures) >= 2:
+            sds.append(float(np.std(np.log(p.process_figures), ddof=1)))
         elif len(p.repeats) >= 2:
             sds.append(float(np.std(np.log(p.repeats), ddof=1)) / math.sqrt(len(p.repeats)))
     return float(np.median(sds)) if sds else 0.0
@@ -91,12 +91,13 @@ def analyse(all_series: dict[SeriesKey, list[CommitPoint]], factor: float = DEFA
     return [analyse_case(k, pts, factor) for k, pts in sorted(all_series.items())]
 
 
-def summary_text(cases: list[CaseHistory], factor: float) -> str:
+def summary_text(cases: list[CaseHistory], factor: float, statistic: str = "median") -> str:
     """One row per case (first and last figure, steps, agreement), then every step in full."""
     commits = {p.commit for c in cases for p in c.points}
-    lines = [f"{len(cases)} cases over {len(commits)} commits; steps from a piecewise-constant fit "
-             f"of log rays/s over the whole sequence (lsbench/compare/steps.py); slowdown / speed-up "
-             f"= a step past the factor {factor}"]
+    lines = [f"{len(cases)} cases over {len(commits)} commits; a commit's rays/s = the median over "
+             f"its runs of each run's {statistic} repeat; steps from a piecewise-constant fit of log "
+             f"rays/s over the whole sequence (lsbench/compare/steps.py); slowdown / speed-up = a "
+             f"step past the factor {factor}"]
     rows = []
     for c in cases:
         first = c.measured[0] if c.measured else None

@@ -33,11 +33,11 @@ def _chart(case: CaseHistory, path: Path) -> Path:
         hi = [pts[i].spread[1] - pts[i].rays_per_second for i in measured]
         ax.errorbar(measured, [pts[i].rays_per_second for i in measured],
                     yerr=[np.maximum(lo, 0), np.maximum(hi, 0)], fmt="o", color="#1f77b4",
-                    ms=4, capsize=3, label="median of runs, IQR of repeats")
-        for i in measured:
-            if len(pts[i].process_medians) > 1:
-                ax.plot([i] * len(pts[i].process_medians), pts[i].process_medians, ".",
-                        color="#7f7f7f", ms=3)
+                    ms=4, capsize=3, label="commit (median of its runs), IQR of repeats")
+        multi = [i for i in measured if len(pts[i].process_figures) > 1]
+        for i in multi:
+            ax.plot([i] * len(pts[i].process_figures), pts[i].process_figures, ".", color="#7f7f7f",
+                    ms=3, label="each run" if i == multi[0] else None)
         if case.fit is not None:
             ax.step(measured, case.fit.levels, where="post", color="#d62728", lw=1.2,
                     label="fitted levels")
@@ -66,8 +66,20 @@ def _chart(case: CaseHistory, path: Path) -> Path:
     return path
 
 
+def history_link(info: dict, out_dir: Path) -> list[str]:
+    """For a run's report: a link to the page of the history database the run went to
+    (run.json's history_dir, set by `lsbench run --history`), when that page exists."""
+    from lsbench.results.history import PAGE
+
+    page = Path(info.get("history_dir") or "") / PAGE
+    if not info.get("history_dir") or not page.is_file():
+        return []
+    return [f"<p class='history'>This run is in the history across commits: "
+            f"<a href='{html.escape(_rel(page, out_dir))}'>history page</a></p>"]
+
+
 def write_history_page(cases: list[CaseHistory], run_dirs: dict[tuple, list[Path]], path, factor: float,
-                       summary: str = "") -> Path:
+                       summary: str = "", statistic: str = "median") -> Path:
     """Write the page to `path` and its charts beside it (history-charts/). run_dirs: (machine,
     commit sha) -> the stored runs of it, linked from the tables."""
     path = Path(path)
@@ -83,7 +95,8 @@ def write_history_page(cases: list[CaseHistory], run_dirs: dict[tuple, list[Path
            "code{font-size:12px}img{max-width:100%}section{margin-bottom:2em}"
            "pre{background:#f6f6f6;padding:.5em;font-size:11px;overflow-x:auto}</style>",
            "</head><body><h1>lsbench history</h1>",
-           f"<p>{len(cases)} cases over {len(commits)} commits; <b>{n_slow} slowdowns</b>. Steps come from "
+           f"<p>{len(cases)} cases over {len(commits)} commits; <b>{n_slow} slowdowns</b>. A commit's "
+           f"rays/s is the median over its runs of each run's {e(statistic)} repeat. Steps come from "
            f"a piecewise-constant fit of log rays/s over the whole sequence (penalised, "
            f"<code>lsbench/compare/steps.py</code>); a step past the factor {factor:g} is a "
            f"slowdown or speed-up. A step's range <code>A..B</code>: A is the last commit at the old "
@@ -120,7 +133,7 @@ def write_history_page(cases: list[CaseHistory], run_dirs: dict[tuple, list[Path
             links = " ".join(f"<a href='{e(_rel(d / 'results.jsonl', out_dir))}'>{i + 1}</a>"
                              for i, d in enumerate(run_dirs.get((c.machine, p.commit), [])))
             out.append(f"<tr><td><code>{e(p.label)}</code></td><td>{e(p.subject[:80])}</td>"
-                       f"<td class='n'>{len(p.process_medians)}{' + failed' if p.failed else ''}</td>"
+                       f"<td class='n'>{len(p.process_figures)}{' + failed' if p.failed else ''}</td>"
                        f"<td class='n'>{fmt_si(p.rays_per_second)}</td>"
                        f"<td class='n'>{'-' if spread is None else fmt_si(spread[0]) + ' - ' + fmt_si(spread[1])}</td>"
                        f"<td class='n'>{'-' if p.agreement is None else f'{p.agreement:.6f}'}</td>"

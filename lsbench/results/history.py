@@ -38,6 +38,7 @@ from lsbench.results import store
 FORMAT = 1
 MARKER = "history.json"
 MACHINE_INFO = "machine.json"
+PAGE = "index.html"  # the history page, written by `lsbench history` and `run --history`
 MACHINE_FIELDS = ("host", "machine", "platform", "processor", "cpu_count")
 
 
@@ -180,7 +181,7 @@ class CommitPoint:
     dirty: bool
     subject: str
     order: int | None
-    process_medians: list[float] = field(default_factory=list)  # median rays/s of each run
+    process_figures: list[float] = field(default_factory=list)  # each run's rays/s (STATISTICS)
     repeats: list[float] = field(default_factory=list)           # every repeat of every run
     agreements: list[float] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)              # reasons of failed runs
@@ -191,8 +192,8 @@ class CommitPoint:
 
     @property
     def rays_per_second(self) -> float | None:
-        """The commit's figure: median over its runs of each run's median rays/s."""
-        return float(np.median(self.process_medians)) if self.process_medians else None
+        """The commit's figure: the median over its runs of each run's figure."""
+        return float(np.median(self.process_figures)) if self.process_figures else None
 
     @property
     def spread(self) -> tuple[float, float] | None:
@@ -209,9 +210,17 @@ class CommitPoint:
 
 SeriesKey = tuple  # (machine, case key, device)
 
+# One run's figure of a case from its repeats' rays/s. "median" is the record's own
+# rays_per_second. "best" is the fastest repeat: on a shared machine interference only ever
+# slows a repeat down, so the minimum time estimates the undisturbed speed and is the most
+# stable figure there (Chen & Revels 2016, "Robust benchmarking in noisy environments").
+STATISTICS = {"median": np.median, "best": np.max}
 
-def series(runs: list[StoredRun]) -> dict[SeriesKey, list[CommitPoint]]:
-    """Per (machine, case key, device): the case's CommitPoints, in the runs' commit order."""
+
+def series(runs: list[StoredRun], statistic: str = "median") -> dict[SeriesKey, list[CommitPoint]]:
+    """Per (machine, case key, device): the case's CommitPoints, in the runs' commit order; each
+    run's figure is the STATISTICS[statistic] of its repeats."""
+    figure = STATISTICS[statistic]
     out: dict[SeriesKey, dict[tuple, CommitPoint]] = {}
     for run in runs:
         m = run.meta
@@ -228,7 +237,7 @@ def series(runs: list[StoredRun]) -> dict[SeriesKey, list[CommitPoint]]:
                 continue
             rps = _run_rps(rec)
             if len(rps):
-                p.process_medians.append(float(np.median(rps)))
+                p.process_figures.append(float(figure(rps)))
                 p.repeats.extend(float(x) for x in rps)
             if rec.get("agreement") is not None:
                 p.agreements.append(float(rec["agreement"]))
