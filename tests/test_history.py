@@ -287,3 +287,14 @@ def test_history_page_renders_in_headless_chromium(tmp_path, linear_repo, capsys
     img = matplotlib.image.imread(shot)[..., :3]
     assert img.shape[:2] == (1600, 1200) and img.std() > 0.05
     assert len(np.unique((img.reshape(-1, 3) * 255).astype(np.uint8), axis=0)) > 50
+
+
+def test_history_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    assert cli.main(["history", str(tmp_path / "none")]) == 2
+    assert "no history database here" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["history", str(tmp_path / "db"), "--processes", "0"])
+    assert exc.value.code == 2 and "--processes" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["history", str(tmp_path / "db"), "--statistic", "mean"])
+    assert exc.value.code == 2

@@ -77,6 +77,8 @@ class CaseDiff:
     holm_level: float | None = None    # the level its p met or missed in Holm's procedure
     significant: bool = False          # slower at the run's false-alarm rate (after Holm)
     samples: tuple = ()                # (base samples, head samples) of rays/s
+    base_rps: float | None = None      # the figures the ratio compares (median over runs)
+    head_rps: float | None = None
     verdicts: list[str] = field(default_factory=list)  # regression kinds
     notes: list[str] = field(default_factory=list)      # improvements, info, no-verdict reasons
     comparable: bool = True
@@ -260,14 +262,15 @@ def _diff_case(c: CaseDiff, factor: float, base_recs: list[dict], head_recs: lis
     c.n_base, c.n_head = len(sb), len(sh)
     c.samples = (sb, sh)
     if len(sb) and len(sh):
-        c.speed_ratio = float(np.median(sh) / np.median(sb)) if len(base_recs) > 1 or len(head_recs) > 1 else None
         c.ranges_disjoint = bool(sh.max() < sb.min())
         _, c.p_value = mann_whitney_less(sh, sb)
         c.ratio_ci = ratio_interval(sh, sb, CI_COVERAGE)
-    if c.speed_ratio is None:
-        rb, rh = _rps(b), _rps(h)
-        if rb and rh:
-            c.speed_ratio = rh / rb
+    rb, rh = _rps(b), _rps(h)
+    if len(base_recs) > 1 or len(head_recs) > 1:  # several runs: the median of their samples
+        rb, rh = (float(np.median(sb)), float(np.median(sh))) if len(sb) and len(sh) else (None, None)
+    c.base_rps, c.head_rps = rb, rh
+    if rb and rh:
+        c.speed_ratio = rh / rb
     if c.speed_ratio is not None and c.speed_ratio > factor:
         if len(sb) and len(sh) and sh.min() > sb.max():
             c.notes.append("faster")
@@ -458,8 +461,8 @@ def table_rows(res: CompareResult) -> list[list[str]]:
         notes = ([c.refused] if c.refused else []) + c.notes
         rows.append([
             c.key, c.status,
-            fmt_si(_rps(c.base)) if c.base else "-",
-            fmt_si(_rps(c.head)) if c.head else "-",
+            fmt_si(c.base_rps or _rps(c.base)) if c.base else "-",
+            fmt_si(c.head_rps or _rps(c.head)) if c.head else "-",
             _fmt_ratio(c.speed_ratio), _fmt_ci(c), _fmt_n(c), _fmt_p(c),
             _fmt_ratio(c.detectable) if c.detectable is not None else "-", _fmt_ratio(c.bytes_ratio),
             _fmt_delta(c.agreement_delta), _verdict(c, res.only_common), "; ".join(notes),
