@@ -58,13 +58,14 @@ class CaseHistory:
 
 
 def within_commit_sigma(points: list[CommitPoint]) -> float:
-    """Typical log-spread of one commit's figure from its own runs: the sd of the log process
-    medians where a commit has several runs (across processes), else of the log repeats over
-    sqrt(n). A floor for the noise estimate only: repeats in one process understate it."""
+    """Typical log-spread of one commit's figure from its own runs: the standard error of the
+    mean of its log run figures where a commit has several runs (across processes), else of its
+    log repeats. A floor for the noise estimate only: repeats in one process understate it."""
     sds = []
     for p in points:
         if len(p.process_figures) >= 2:
-            sds.append(float(np.std(np.log(p.process_figures), ddof=1)))
+            k = len(p.process_figures)
+            sds.append(float(np.std(np.log(p.process_figures), ddof=1)) / math.sqrt(k))
         elif len(p.repeats) >= 2:
             sds.append(float(np.std(np.log(p.repeats), ddof=1)) / math.sqrt(len(p.repeats)))
     return float(np.median(sds)) if sds else 0.0
