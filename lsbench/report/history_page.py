@@ -51,7 +51,7 @@ def _chart(case: CaseHistory, path: Path) -> Path:
             ax.axvline(i, color="#999", ls=":", lw=1)
     ax.set_ylabel("rays/s")
     ax.yaxis.set_major_formatter(lambda v, _pos: fmt_si(v))
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=3, frameon=False)
     ax.grid(alpha=0.3)
     agree = [(i, p.agreement) for i, p in enumerate(pts) if p.agreement is not None]
     if agree:
@@ -60,7 +60,7 @@ def _chart(case: CaseHistory, path: Path) -> Path:
     ax2.grid(alpha=0.3)
     ax2.set_xticks(x)
     ax2.set_xticklabels([p.commit[:7] for p in pts], rotation=60, fontsize=7, family="monospace")
-    fig.suptitle(f"{case.key} [{case.device}]", fontsize=9)
+    fig.suptitle(f"{case.key} [{case.device}]", fontsize=9, y=1.03)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, bbox_inches="tight")
     return path
