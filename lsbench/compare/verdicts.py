@@ -50,6 +50,7 @@ import numpy as np
 from lsbench.compare.stats import (detectable_ratio, mann_whitney_less, min_p_value, ratio_interval,
                                    samples_needed)
 from lsbench.report.format import fmt_si, text_table
+from lsbench.results.history import repeat_rays_per_second
 from lsbench.results.store import format_commit, read_run, record_device, run_devices
 
 DEFAULT_FACTOR = 1.1
@@ -195,22 +196,11 @@ class CompareResult:
         return format_table(self)
 
 
-def _rps_samples(rec: dict) -> np.ndarray:
-    """Per-repeat rays/s of one record (ray_count / each repeat's trace time)."""
-    times = rec.get("trace_seconds_all") or []
-    rays = rec.get("ray_count")
-    times = np.asarray([t for t in times if t is not None and t > 0], dtype=float)
-    if rays and len(times):
-        return float(rays) / times
-    rps = rec.get("rays_per_second")
-    return np.asarray([rps], dtype=float) if rps else np.asarray([], dtype=float)
-
-
 def _samples(recs: list[dict]) -> tuple[np.ndarray, str]:
     """(samples of rays/s, what a sample is) of one case over one side's runs: its repeats when
     one run has it, else one median per run (repeats across processes)."""
     ok = [r for r in recs if r.get("status") == "ok"]
-    per_run = [_rps_samples(r) for r in ok]
+    per_run = [repeat_rays_per_second(r) for r in ok]
     per_run = [x for x in per_run if len(x)]
     if len(per_run) >= 2:
         return np.asarray([float(np.median(x)) for x in per_run]), "processes"
@@ -255,8 +245,8 @@ def _diff_case(c: CaseDiff, factor: float, base_recs: list[dict], head_recs: lis
     sb, units_b = _samples(base_recs)
     sh, units_h = _samples(head_recs)
     if units_b != units_h:  # one run on one side, several on the other: compare like with like
-        sb = np.concatenate([_rps_samples(r) for r in base_recs if r.get("status") == "ok"] or [[]])
-        sh = np.concatenate([_rps_samples(r) for r in head_recs if r.get("status") == "ok"] or [[]])
+        sb = np.concatenate([repeat_rays_per_second(r) for r in base_recs if r.get("status") == "ok"] or [[]])
+        sh = np.concatenate([repeat_rays_per_second(r) for r in head_recs if r.get("status") == "ok"] or [[]])
         units_b = "repeats"
     c.units = units_b
     c.n_base, c.n_head = len(sb), len(sh)
@@ -358,7 +348,7 @@ def _read_side(dirs) -> tuple[list[str], dict, list[dict], dict[str, list[dict]]
     info: dict = {}
     recs: list[dict] = []
     by: dict[str, list[dict]] = {}
-    for i, d in enumerate(dirs):
+    for d in dirs:
         run_info, run_recs = read_run(d)
         info = info or run_info
         recs += run_recs
@@ -368,16 +358,19 @@ def _read_side(dirs) -> tuple[list[str], dict, list[dict], dict[str, list[dict]]
     return [str(d) for d in dirs], info, recs, by
 
 
+def _shown_record(recs: list[dict]) -> dict:
+    """The record a row shows of a case in one side's runs: its first ok one, else its first."""
+    return next((r for r in recs if r.get("status") == "ok"), recs[0])
+
+
 def compare_runs(base_dir, head_dir, factor: float = DEFAULT_FACTOR,
                  alpha: float = DEFAULT_ALPHA, only_common: bool = False) -> CompareResult:
     """Compare head with base; each is a run folder or a list of run folders of one commit
     (repeats across processes: a case in several runs gets one sample per run)."""
     base_dirs, base_info, base_recs, base_all = _read_side(base_dir)
     head_dirs, head_info, head_recs, head_all = _read_side(head_dir)
-    # the record a row shows: the case's first ok record (else its first) of each side
-    pick = lambda rs: next((r for r in rs if r.get("status") == "ok"), rs[0])
-    base_by = {k: pick(v) for k, v in base_all.items()}
-    head_by = {k: pick(v) for k, v in head_all.items()}
+    base_by = {k: _shown_record(v) for k, v in base_all.items()}
+    head_by = {k: _shown_record(v) for k, v in head_all.items()}
     common = [(base_by[k], head_by[k]) for k in base_by if k in head_by]
     warnings, verdicts_given = _environment_warnings(base_info, base_recs, head_info, head_recs,
                                                      common)
@@ -402,7 +395,9 @@ def compare_runs(base_dir, head_dir, factor: float = DEFAULT_FACTOR,
     for label, dirs, recs in (("base", base_dirs, base_recs), ("head", head_dirs, head_recs)):
         if not recs:
             warnings.append(f"{label} run {', '.join(dirs)} has no records")
-    name = lambda dirs: dirs[0] + (f" (+{len(dirs) - 1} more runs)" if len(dirs) > 1 else "")
+    def name(dirs):
+        return dirs[0] + (f" (+{len(dirs) - 1} more runs)" if len(dirs) > 1 else "")
+
     return CompareResult(name(base_dirs), name(head_dirs), factor, alpha, base_info, head_info,
                          cases, warnings, verdicts_given, only_common, len(base_dirs), len(head_dirs))
 

@@ -165,13 +165,16 @@ def read_history(history_dir) -> list[StoredRun]:
     return runs
 
 
-def _run_rps(rec: dict) -> np.ndarray:
-    """Per-repeat rays/s of one ok record (ray_count / each repeat's trace time)."""
+def repeat_rays_per_second(rec: dict) -> np.ndarray:
+    """Per-repeat rays/s of one record (ray_count / each repeat's trace time); the record's
+    rays_per_second alone when it has no repeat times; empty when neither. (compare's samples
+    too: lsbench/compare/verdicts.py.)"""
     rays = rec.get("ray_count")
-    times = np.asarray([t for t in rec.get("trace_seconds_all") or [] if t and t > 0], dtype=float)
+    times = np.asarray([t for t in rec.get("trace_seconds_all") or [] if t is not None and t > 0], dtype=float)
     if rays and len(times):
         return float(rays) / times
-    return np.asarray([rec["rays_per_second"]] if rec.get("rays_per_second") else [], dtype=float)
+    rps = rec.get("rays_per_second")
+    return np.asarray([rps] if rps else [], dtype=float)
 
 
 @dataclass
@@ -235,7 +238,7 @@ def series(runs: list[StoredRun], statistic: str = "median") -> dict[SeriesKey, 
             if rec.get("status") != "ok":
                 p.failed.append(rec.get("reason") or "failed")
                 continue
-            rps = _run_rps(rec)
+            rps = repeat_rays_per_second(rec)
             if len(rps):
                 p.process_figures.append(float(figure(rps)))
                 p.repeats.extend(float(x) for x in rps)
