@@ -131,6 +131,17 @@ def test_runs_sort_by_commit_order_not_by_appending(tmp_path, linear_repo):
 
 # ---------------------------------------------------------------- step detection
 
+def test_segment_costs_match_the_direct_sum():
+    rng = np.random.default_rng(11)
+    for n in (1, 2, 5, 16):
+        y = np.round(rng.standard_normal(n), 1)  # ties too
+        cost = steps._segment_costs(y)
+        for i in range(n):
+            for j in range(i, n):
+                seg = y[i:j + 1]
+                assert cost[i, j] == pytest.approx(np.abs(seg - np.median(seg)).sum(), abs=1e-12)
+
+
 def test_planted_step_is_found_at_its_commit():
     for seed in range(10):
         rng = np.random.default_rng(seed)
