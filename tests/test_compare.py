@@ -435,3 +435,17 @@ def test_tied_small_samples_get_the_exact_permutation_p():
     assert stats.samples_needed(0.05) == 3 and stats.samples_needed(0.05 / 60) == 7
     est, lo, hi, cov = stats.ratio_interval([7.0, 7.1, 6.9], [10.0, 10.2, 9.8])
     assert lo < est < hi and est == pytest.approx(0.7, rel=0.02) and cov == pytest.approx(0.9)
+
+
+def test_processes_auto_is_what_a_lone_slowdown_needs(tmp_path):
+    scenario = tmp_path / "two.toml"
+    scenario.write_text('name = "two"\n[[cases]]\nscenes = ["cornell"]\nstructures = ["grid"]\n'
+                        'backends = ["glsl", "opencl"]\nresolutions = [8]\n')
+    # 2 cases: Holm's first level 0.05/2; 3 v 3 reach only 1/20, 4 v 4 reach 1/70
+    assert commits.processes_needed(scenario, 0.05) == (4, 2)
+    assert commits.processes_needed(scenario, 0.2) == (3, 2)
+    assert commits.processes_needed("ci", 0.05)[0] >= 7  # the CI gate's many cases
+    for bad in ("0", "many"):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["compare-commits", "HEAD", "HEAD", str(scenario), "--processes", bad])
+        assert exc.value.code == 2

@@ -107,6 +107,17 @@ def _stamp() -> str:
     return _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
 
 
+def processes_needed(scenario, alpha: float = DEFAULT_ALPHA) -> tuple[int, int]:
+    """(runs per revision, cases) for `compare-commits --processes auto`: the fewest runs K such
+    that K against K per-run samples can reach Holm's first level alpha / cases (the exact U
+    test's smallest p is 1 / C(2K, K)), so that a lone slowdown can be flagged at all."""
+    from lsbench.compare.stats import samples_needed
+    from lsbench.inputs.scenario import load_scenario
+
+    cases = max(1, len(load_scenario(str(scenario)).cases))
+    return max(2, samples_needed(alpha / cases) or 2), cases
+
+
 def compare_commits(rev_a: str, rev_b: str, scenario, factor: float = DEFAULT_FACTOR,
                     out_dir=None, repo_dir=None, alpha: float = DEFAULT_ALPHA,
                     extra_args=(), stream=None, only_common: bool = False,
