@@ -21,6 +21,7 @@ from lsbench.report.charts import (chart_build_memory, chart_rays_memory, chart_
                                    chart_speed_accuracy, chart_workload)
 from lsbench.report.export import write_exports
 from lsbench.report.format import fmt_mib, fmt_num, fmt_pct, fmt_seconds, fmt_si, slug
+from lsbench.report.history_page import history_link
 from lsbench.report.images import Files, heatmap_section, image_accuracy_section
 from lsbench.report.records import case_label, label_scenes, resolution_label, scene_name, succeeded
 from lsbench.report.tables import (Baselines, is_camera, one_per_build, table_html, thesis_tables, workload_label,
@@ -334,7 +335,7 @@ def write_report(run_dir, out_dir=None) -> Path:
            f"{e(format_commit(info.get('commit'), info.get('dirty')))} · "
            f"<b>{ok}</b> cases ok, <b>{len(records) - ok}</b> failed</p>",
            "<nav>" + "".join(f"<a href='#{a}'>{e(t)}</a>" for a, t in nav) + "</nav>",
-           _compare_link(run_dir, out_dir), *body, "</body></html>"]
+           _compare_link(run_dir, out_dir), *history_link(info, out_dir), *body, "</body></html>"]
     index = out_dir / "index.html"
     index.write_text("\n".join(out))
     return index
