@@ -198,26 +198,16 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 #define LS_ABOVE_PLANE 0x8000000u   // the triangle covers the cell and the patch lies above its plane
 #define LS_BELOW_PLANE 0x10000000u  // ... below it
 
-
-// Largest cell c in [lo, hi) with ls_ref_bases[c] <= key (ls_item_cell: the same over ls_item_bases).
-INLINE uint ls_ref_cell(CTX_PARAM uint lo, uint hi, uint key) {
-    while (hi - lo > 1u) {
-        uint mid = lo + (hi - lo) / 2u;
-        if (V(ls_ref_bases)[mid] <= key) lo = mid; else hi = mid;
-    }
-    return lo;
-}
+// fn(lo, hi, key): the largest cell c in [lo, hi) with buf[c] <= key, buf being an exclusive scan
+// over the cells (ls_ref_bases: a mask row's cell; ls_item_bases: a work item's cell).
+#define LS_CELL_SEARCH(fn, buf) INLINE uint fn(CTX_PARAM uint lo, uint hi, uint key) { \
+    while (hi - lo > 1u) { uint mid = lo + (hi - lo) / 2u; if (V(buf)[mid] <= key) lo = mid; else hi = mid; } \
+    return lo; }
+LS_CELL_SEARCH(ls_ref_cell, ls_ref_bases)
 #endif
 
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
-// Largest cell c in [lo, hi) with ls_item_bases[c] <= key: the cell of a work item.
-INLINE uint ls_item_cell(CTX_PARAM uint lo, uint hi, uint key) {
-    while (hi - lo > 1u) {
-        uint mid = lo + (hi - lo) / 2u;
-        if (V(ls_item_bases)[mid] <= key) lo = mid; else hi = mid;
-    }
-    return lo;
-}
+LS_CELL_SEARCH(ls_item_cell, ls_item_bases)
 #endif
 
 // A fill with the count's pair bits (LS_PAIR_BITS) tests nothing and binds no scene or masks.
@@ -225,7 +215,7 @@ INLINE uint ls_item_cell(CTX_PARAM uint lo, uint hi, uint key) {
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
-// Cheap outcomes first (ls_quick): all corners outside one plane -> no; all corners inside every
+// Cheap outcomes first (ls_side): all corners outside one plane -> no; all corners inside every
 // plane -> yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3)
 // and see whether anything is left (LS_CLIP_SH), or, by default, the equivalent exact separating-
 // axis test ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
