@@ -3,6 +3,9 @@
 - Shaft candidate lists are conservative: every triangle that a segment between two points of a
   shaft's patches meets is a candidate of that shaft (numpy, segments sampled independently of
   the device's facet planes), for N = 1, 2, 3 and both exact tests (clipping, SAT).
+- They are the numpy reference's (lsbench/oracle/reference.py: shaft_candidates) up to float32
+  rounding, also when a cell's candidates are split over several work items (the driver's loop
+  budget) and for a cell past llvmpipe's budget of 65535 loop iterations.
 - Hits agree with Embree, and with `grid` up to ties; ls_min_candidates keeps the hits and saves
   memory; the 32-bit and buffer-size limits raise DeviceLimitError instead of truncating.
 """
@@ -14,6 +17,7 @@ import pytest
 from lsbench import backends
 from lsbench.backends import BuildParams, DeviceLimitError
 from lsbench.backends.structures import linespace
+from lsbench.oracle import reference
 from lsbench.oracle.embree import embree_closest
 from lsbench.inputs.rays import RaySet, primary_rays
 from lsbench.inputs.scene import Camera, Scene
@@ -24,7 +28,7 @@ from conftest import scene_path
 
 # Sponza (Crytek, cm): an interior view down the atrium (all rays hit).
 SPONZA_CAMERA = Camera(eye=(1300.0, 300.0, -50.0), target=(-1000.0, 450.0, 0.0), up=(0, 1, 0), fov_deg=60.0)
-FACE_PAIRS = [(a, b) for a in range(6) for b in range(a + 1, 6)]  # block order of Listing 1
+FACE_PAIRS = list(reference.FACE_PAIRS)  # block order of Listing 1
 
 
 def random_scene(n_tris=40, size=0.3, seed=3) -> Scene:
@@ -137,6 +141,107 @@ def test_shaft_candidates_hold_every_triangle_a_shaft_segment_meets(device, monk
     assert culled > 0 or n == 1  # the Line Space does cull: not every shaft holds the whole list
     assert built.stats["shafts"] == per_cell * len(voxels)
     assert built.stats["candidate_references"] == len(cand)
+    built.release()
+
+
+def voxel_lists(device, scene, res) -> dict[int, np.ndarray]:
+    """The plain grid's list per non-empty voxel (grid-ls drops its own once every voxel has a
+    Line Space)."""
+    grid = backends.build(device, "grid", scene, BuildParams(resolution=res))
+    offs = device.read(grid.buffers["voxel_offsets"], np.uint32).astype(np.int64)
+    tris = device.read(grid.buffers["voxel_tris"], np.uint32).astype(np.int64)
+    grid.release()
+    return {v: tris[offs[v]:offs[v + 1]] for v in np.flatnonzero(np.diff(offs))}
+
+
+def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
+    """Every Line Space cell's shaft lists lie between the numpy reference at eps -/+ delta, and
+    the borderline (pairs only one of them holds) is a small part of the candidates."""
+    lists = voxel_lists(device, scene, res)
+    ls_ids, offs, cand = read_linespaces(built)
+    per_cell = 15 * n**4
+    g = built.geometry
+    grid_tris = (scene.vertices[scene.faces].astype(np.float64) - np.asarray(g.origin)) / np.asarray(g.voxel_size)
+    inner_total = border = 0
+    for vox in np.flatnonzero(np.diff(ls_ids)):
+        cell = np.array([vox % res[0], (vox // res[0]) % res[1], vox // (res[0] * res[1])])
+        ids = np.sort(lists[vox])
+        inner, outer = reference.linespace_borderline(grid_tris[ids] - cell, n, linespace.LS_EPS, delta, test_kind)
+        base = offs[ls_ids[vox] * per_cell:(ls_ids[vox] + 1) * per_cell + 1]
+        got = np.zeros_like(inner)
+        rows = np.repeat(np.arange(per_cell), np.diff(base))
+        cols = np.searchsorted(ids, cand[base[0]:base[-1]])
+        assert (ids[cols.clip(max=len(ids) - 1)] == cand[base[0]:base[-1]]).all(), "a candidate not in the voxel"
+        got[rows, cols] = True
+        assert np.diff(base).sum() == got.sum(), "a triangle twice in one shaft"
+        assert not (inner & ~got).any(), f"voxel {vox}: reference candidates missing {np.argwhere(inner & ~got)[:5]}"
+        assert not (got & ~outer).any(), f"voxel {vox}: candidates the reference rejects {np.argwhere(got & ~outer)[:5]}"
+        inner_total += int(inner.sum())
+        border += int((outer & ~inner).sum())
+    assert inner_total > 100 and border <= 0.01 * inner_total, (inner_total, border)
+
+
+@pytest.mark.parametrize("n,test_kind", [(1, "sat"), (2, "clip"), (2, "sat"), (3, "clip")])
+def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_kind):
+    monkeypatch.setenv("LSBENCH_LS_TEST", test_kind)
+    scene, res = random_scene(), (3, 3, 2)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    assert built.stats["ls_work_items"] == built.stats["shafts"]  # one chunk per cell here
+    assert_reference_lists(device, scene, res, n, test_kind, built)
+    built.release()
+
+
+@pytest.mark.parametrize("split", ["chunks", "batches"])
+def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, split):
+    """Cells with more candidates than one work item may walk (the driver's loop budget): each
+    shaft is counted and filled in chunks, and its list is the one-chunk build's, in list order.
+    Likewise with the cells' masks in several batches and a fill that tests again (no pair bits)."""
+    scene, res, n = random_scene(), (3, 3, 2), 2
+    whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    whole_lists = read_linespaces(whole)
+    assert whole.stats["ls_cell_batches"] == 1 and whole.stats["ls_pair_bits"]
+    whole.release()
+    if split == "chunks":
+        per_candidate = linespace.LS_ITERATIONS_PER_CANDIDATE[exact_kind(device)]
+        monkeypatch.setitem(linespace.LS_LOOP_BUDGET, device.backend, 3 * per_candidate)
+    else:
+        monkeypatch.setattr(linespace, "LS_MASK_BYTES", 4 * 24 * 30)  # 30 references of 6 N^2 masks
+        monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    st = built.stats
+    if split == "chunks":
+        assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > 2 * st["shafts"], st
+    else:
+        assert st["ls_cell_batches"] > 3 and not st["ls_pair_bits"], st
+    assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(offs, whole_lists[1])
+    np.testing.assert_array_equal(ls_ids, whole_lists[0])
+    for lo, hi in zip(offs[:-1], offs[1:]):  # the voxel lists may come in another order between builds
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    built.release()
+
+
+def exact_kind(device) -> str:
+    return {"glsl": "sat", "opencl": "clip"}[device.backend]  # Device.line_space_test
+
+
+def test_cell_past_the_loop_budget(device):
+    """One cell with 70,000 candidates: more than llvmpipe's 65535 loop iterations per invocation
+    (the count used to fail there naming the limit); on GLSL the shafts are counted in chunks."""
+    rng = np.random.default_rng(2)
+    count = 70_000
+    centres = rng.uniform(0.05, 0.95, (count, 1, 3))
+    v = (centres + rng.normal(0, 0.01, (count, 3, 3))).reshape(-1, 3)
+    v = np.vstack([v, [[0, 0, 0], [1, 1, 1]]]).astype(np.float32)  # two points pin the bounds
+    faces = np.arange(3 * count, dtype=np.uint32).reshape(-1, 3)
+    scene = Scene("dense", v, faces, "test")
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=(1, 1, 1), ls_n=1))
+    st = built.stats
+    assert st["linespace_cells"] == 1
+    if device.backend == "glsl":
+        assert st["ls_work_items"] == 15 * -(-count // st["ls_candidate_chunk"]) > 15
+    assert_reference_lists(device, scene, (1, 1, 1), 1, exact_kind(device), built)
     built.release()
 
 

@@ -38,6 +38,8 @@ voxelize(eps) only on borderline pairs. `compare_to_reference` does this check.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 # Candidate (voxel, triangle) pairs tested per batch: bounds the temporary arrays (~100 MB).
@@ -270,3 +272,129 @@ def _csr_keys(offsets, tri_ids, voxel_count, n_tri):
     if keys.size > 1 and np.any(keys[1:] == keys[:-1]):
         raise ValueError("a triangle id appears twice in one voxel")
     return keys
+
+
+# --- Line Space shaft candidates (linespace.h), numpy float64 ------------------------------------
+# The device decides per (shaft, triangle) in cell-local coordinates (the cell is the unit cube):
+# rejected when one facet plane of the shaft volume (the convex hull of its two patches) has all
+# three corners outside by more than eps; accepted when every corner is within eps of every
+# facet; otherwise by the exact test of the backend: "sat", the separating-axis test (triangle
+# normal, triangle edges x cell axes, triangle edges x corner-to-corner directions, margin
+# eps * |axis|), or "clip", clipping against the facet planes pushed out by eps (Sutherland-
+# Hodgman) = the triangle meets the polytope {x : n_q . x + w_q <= eps}. Whatever the device does
+# to get there faster (culls, certain cases: linespace.h), its lists must be these, up to float32
+# rounding: shaft_candidates(eps - delta) <= device <= shaft_candidates(eps + delta) (the
+# decision grows with eps), see linespace_borderline.
+FACE_PAIRS = tuple((a, b) for a in range(6) for b in range(a + 1, 6))  # block order of Listing 1
+
+
+def patch_corners(face: int, patch: int, n: int) -> np.ndarray:
+    """(4, 3) corners k = 0..3 of a patch, cell-local, in the order of linespace.h ls_patch_corner."""
+    axis, side = divmod(face, 2)
+    ui, vi = patch % n, patch // n
+    out = np.empty((4, 3))
+    for k in range(4):
+        out[k, axis] = side
+        out[k, (axis + 1) % 3] = (ui + (k & 1)) / n
+        out[k, (axis + 2) % 3] = (vi + (k >> 1)) / n
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def shaft_corners(n: int) -> np.ndarray:
+    """(15 N^4, 8, 3): the 4 corners of the first patch, then the second's, per shaft id."""
+    out = []
+    for a, b in FACE_PAIRS:
+        for pa in range(n * n):
+            for pb in range(n * n):
+                out.append(np.vstack([patch_corners(a, pa, n), patch_corners(b, pb, n)]))
+    return np.array(out)
+
+
+@functools.lru_cache(maxsize=8)
+def shaft_facets(n: int) -> np.ndarray:
+    """(15 N^4, 8, 4): per shaft the outward unit facet planes (n, w) of the hull of its 8
+    corners (planes through 3 corners with all 8 on one side; dot(n, p) + w <= 0 inside), the
+    unused slots (0, 0, 0, -1) like linespace.h's ls_planes_kernel."""
+    corners = shaft_corners(n)
+    out = np.tile(np.array([0.0, 0.0, 0.0, -1.0]), (len(corners), 8, 1))
+    triples = np.array([(i, j, k) for i in range(8) for j in range(i + 1, 8) for k in range(j + 1, 8)])
+    for s, P in enumerate(corners):
+        nrm = np.cross(P[triples[:, 1]] - P[triples[:, 0]], P[triples[:, 2]] - P[triples[:, 0]])
+        length = np.linalg.norm(nrm, axis=1)
+        keep = length > 1e-9
+        nrm, origin = nrm[keep] / length[keep, None], P[triples[keep, 0]]
+        d = np.einsum("fc,pc->fp", nrm, P) - np.einsum("fc,fc->f", nrm, origin)[:, None]
+        facet = ~((d.max(1) > 1e-9) & (d.min(1) < -1e-9))
+        flip = np.where(d.max(1) > 1e-9, -1.0, 1.0)[:, None]
+        nrm = (nrm * flip)[facet]
+        planes = np.concatenate([nrm, -np.einsum("fc,fc->f", nrm, origin[facet])[:, None]], 1)
+        planes = np.unique(np.round(planes, 9), axis=0)
+        out[s, :len(planes)] = planes
+    return out
+
+
+def shaft_candidates(tris: np.ndarray, n: int, eps: float, test: str) -> np.ndarray:
+    """(15 N^4, T) bool: triangle t (tris (T, 3, 3), cell-local float64) is a candidate of shaft s."""
+    if test not in ("sat", "clip"):
+        raise ValueError(f"test must be 'sat' or 'clip', got {test!r}")
+    corners, facets = shaft_corners(n), shaft_facets(n)
+    dist = np.einsum("tkc,sfc->stfk", tris, facets[:, :, :3]) + facets[:, None, :, 3, None]  # (S, T, 8, 3)
+    out_all = (dist - eps > 0).all(axis=3).any(axis=2)
+    in_all = (dist - eps <= 0).all(axis=(2, 3))
+    s_idx, t_idx = np.nonzero(~out_all & ~in_all)
+    meets = in_all & ~out_all
+    for lo in range(0, len(s_idx), 1 << 16):  # bounded temporaries
+        s, t = s_idx[lo:lo + (1 << 16)], t_idx[lo:lo + (1 << 16)]
+        exact = _sat_meets(tris[t], corners[s], eps) if test == "sat" else _clip_meets(tris[t], facets[s], eps)
+        meets[s, t] = exact
+    return meets
+
+
+def linespace_borderline(tris: np.ndarray, n: int, eps: float, delta: float, test: str):
+    """(inner, outer) candidate sets at eps - delta and eps + delta: a correct float32 build lies
+    between them (like borderline_pairs for the voxelizer)."""
+    return shaft_candidates(tris, n, eps - delta, test), shaft_candidates(tris, n, eps + delta, test)
+
+
+def _sat_meets(tris: np.ndarray, P: np.ndarray, eps: float) -> np.ndarray:
+    """No axis of linespace.h ls_sat_meets separates triangle k from the hull of P[k] by more than
+    eps * |axis| (the facet normals are the quick test's)."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    edges = [b - a, c - b, a - c]
+    dirs = [np.broadcast_to(np.eye(3)[k], a.shape) for k in range(3)] + [P[:, 4 + j] - P[:, i]
+                                                                        for i in range(4) for j in range(4)]
+    axes = [np.cross(b - a, c - a)] + [np.cross(e, d) for e in edges for d in dirs]
+    meets = np.ones(len(tris), bool)
+    for ax in axes:
+        t = np.einsum("tkc,tc->tk", tris, ax)
+        h = np.einsum("tpc,tc->tp", P, ax)
+        m = eps * np.linalg.norm(ax, axis=1)
+        meets &= ~((t.min(1) > h.max(1) + m) | (t.max(1) < h.min(1) - m))
+    return meets
+
+
+def _clip_meets(tris: np.ndarray, F: np.ndarray, eps: float) -> np.ndarray:
+    """Triangle k meets {x : F[k, :, :3] . x + F[k, :, 3] <= eps}: a 2D linear feasibility problem in
+    the barycentric coordinates (l1, l2), l1, l2 >= 0, l1 + l2 <= 1, solved by trying every
+    vertex of the constraint arrangement (the feasible polygon, if any, has one of them as a
+    corner)."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    # Constraint rows g . (l1, l2) <= h: x = a + l1 (b - a) + l2 (c - a).
+    g1 = np.einsum("tc,tfc->tf", b - a, F[:, :, :3])
+    g2 = np.einsum("tc,tfc->tf", c - a, F[:, :, :3])
+    h = eps - F[:, :, 3] - np.einsum("tc,tfc->tf", a, F[:, :, :3])
+    T = len(tris)
+    G = np.concatenate([np.stack([g1, g2], -1), np.broadcast_to([[-1.0, 0.0], [0.0, -1.0], [1.0, 1.0]], (T, 3, 2))], 1)
+    H = np.concatenate([h, np.broadcast_to([0.0, 0.0, 1.0], (T, 3))], 1)
+    k = G.shape[1]
+    i, j = np.triu_indices(k, 1)
+    A = np.stack([G[:, i], G[:, j]], -2)  # (T, pairs, 2, 2)
+    rhs = np.stack([H[:, i], H[:, j]], -1)
+    det = np.linalg.det(A)
+    ok = np.abs(det) > 1e-12
+    A[~ok] = np.eye(2)
+    pts = np.linalg.solve(A, rhs[..., None])[..., 0]  # (T, pairs, 2)
+    slack = np.einsum("tkc,tpc->tpk", G, pts) - H[:, None, :]
+    feasible = ok & (slack <= 1e-12 * (1 + np.abs(H[:, None, :]))).all(-1)
+    return feasible.any(1)

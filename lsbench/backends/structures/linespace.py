@@ -20,9 +20,15 @@ the traversal finds s with ls_shaft_id() of shaders/common/linespace.h (Listing 
 ray's entry and exit face and patch in cell-local coordinates.
 
 Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
-(2) count: one work item per (cell, shaft) clips each of the cell's triangles against the
-shaft (Sutherland-Hodgman, conservative margin LS_EPS) and writes the count where the shaft's
-offset goes; (3) exclusive scan of that array in place; (4) fill, same test, writing in list order.
+(2) masks: per (triangle reference, patch) the bits that decide most (shaft, triangle) pairs with
+one AND (linespace.h: ls_masks_kernel), for a batch of cells at a time (LS_MASK_BYTES);
+(3) count: one work item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
+driver's loop budget) decides each candidate, from the masks where they know the answer, else
+by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
+item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES); (4) exclusive scan of
+those counts in place; (5) fill: the same items write their candidates in list order (from the
+bits, or testing again where they did not fit); (6) where a cell has several chunks, the shaft
+offsets are gathered from the item offsets. docs/linespace-build.md measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
 buffer here, varying with the host memory in use): each is then split over up to LS_MAX_CHUNKS
@@ -56,6 +62,10 @@ LS_TRACE_BUFFERS = (Buf("ls_ids", "uint", "r"), Buf("ls_shaft_offsets", "uint", 
                     Buf("ls_shaft_tris", "uint", "r"))
 LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "uint"),
                                Uniform("ls_eps", "float"))
+# The build's batch of cells (linespace.h: ls_shaft_kernel, ls_masks_kernel).
+LS_BATCH_UNIFORMS = LS_UNIFORMS + (Uniform("ls_chunk", "uint"), Uniform("ls_item_base", "uint"),
+                                   Uniform("ls_ref_base", "uint"), Uniform("ls_cell_first", "uint"),
+                                   Uniform("ls_cell_end", "uint"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
@@ -65,21 +75,59 @@ UINT32_MAX = 2**32 - 1
 # buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
 # PoCL's global memory (7-14 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
+# llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/scene.h); a
+# count or fill work item runs one loop iteration per candidate of its chunk plus the exact test's
+# inner loops where the compiler keeps them (SAT: at most 12; clipping: 8 planes x 2 loops of at
+# most LS_MAX_POLY = 16 vertices) and the cell lookup (< 32), so chunks of 4095 (SAT) or 240
+# (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk per cell.
+LS_LOOP_BUDGET = {"glsl": 65535}
+LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16}
+# Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
+# least one cell.
+LS_MASK_BYTES = 64 * 2**20
+# Most bytes the count's decisions (one bit per shaft and candidate) may take to spare the fill
+# the tests; a larger case tests every pair again in the fill.
+LS_PAIR_BITS_BYTES = 256 * 2**20
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
-_CELL_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_cell_boxes", "float4", "r"),
-                 Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"))
-# The count pass writes each shaft's count where its offset will be; the scan turns them into
-# offsets in place (no second array of the offsets' size).
+_CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
+                 Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
+_ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"),
+                 Buf("ls_masks", "uint", "r"))
+# The count's decisions, one bit per (shaft, candidate), read by the fill (LS_PAIR_BITS).
+LS_PAIR_BITS_COUNT = Buf("ls_pair_bits", "uint", "rw")
+LS_PAIR_BITS_FILL = Buf("ls_pair_bits", "uint", "r")
+LS_MASKS = KernelSpec(
+    "ls_masks", LS_HEADERS, "ls_masks_kernel", SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_masks", "uint", "w"),),
+    LS_BATCH_UNIFORMS)
+# The count pass writes each item's count where its offset will be; the scan turns them into
+# offsets in place (no second array of the offsets' size where every cell is one chunk).
 LS_COUNT = KernelSpec(
     "ls_count", LS_HEADERS, "ls_shaft_kernel",
-    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
-    LS_UNIFORMS)
+    SCENE_BUFFERS + _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"),
+                                                     Buf("ls_stats", "uint", "rw")),
+    LS_BATCH_UNIFORMS)
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
-    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
-    LS_UNIFORMS)
+    SCENE_BUFFERS + _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"),
+                                                     Buf("ls_shaft_tris", "uint", "w")),
+    LS_BATCH_UNIFORMS)
+# The fill from the count's pair bits binds only what it reads (llvmpipe: 16 storage buffers per
+# kernel, and both arrays may be split over 4).
+LS_FILL_FROM_BITS = KernelSpec(
+    "ls_fill", LS_HEADERS_NO_SCENE, "ls_shaft_kernel",
+    (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"),
+     Buf("ls_item_bases", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
+     Buf("ls_shaft_tris", "uint", "w")),
+    LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
+LS_GATHER = KernelSpec(
+    "ls_gather", LS_HEADERS_NO_SCENE, "ls_gather_kernel",
+    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_offsets", "uint", "w")),
+    LS_BATCH_UNIFORMS)
+LS_NONEMPTY = KernelSpec(
+    "ls_nonempty", LS_HEADERS_NO_SCENE, "ls_nonempty_kernel",
+    (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_stats", "uint", "rw")), LS_UNIFORMS)
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
     (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
@@ -88,7 +136,7 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_COUNT, LS_FILL, LS_CHECK, LS_CARRY)
+BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_GATHER, LS_NONEMPTY, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
@@ -213,9 +261,19 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
     return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
 
 
+def _count_fill_specs(device: Device, pair_bits: bool) -> tuple[KernelSpec, KernelSpec]:
+    count, fill = _with_test(device, LS_COUNT), _with_test(device, LS_FILL)
+    if not pair_bits:
+        return count, fill
+    return (dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1),
+            LS_FILL_FROM_BITS)
+
+
 def prepare(device: Device) -> None:
     for spec in BUILD_SPECS:
         device.compile(_with_test(device, spec))
+    for spec in _count_fill_specs(device, True):
+        device.compile(spec)
 
 
 def check_min_candidates(k: int) -> int:
@@ -242,11 +300,63 @@ def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
             "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell}
 
 
+def candidate_chunk(device: Device) -> int:
+    """Most candidates one count or fill work item walks: the driver's loop budget over the
+    iterations a candidate may take (LS_LOOP_BUDGET), unbounded (2^32 - 1) where there is none."""
+    budget = LS_LOOP_BUDGET.get(device.backend)
+    return UINT32_MAX if budget is None else max(1, budget // LS_ITERATIONS_PER_CANDIDATE[exact_test(device)])
+
+
+@dataclass(frozen=True)
+class BuildPlan:
+    """How the count and fill passes cover the cells: cell c has chunks(c) = ceil(len / chunk)
+    (at least 1) chunks and 15 N^4 chunks(c) work items from item_bases[c]; its references are
+    numbered densely from ref_bases[c] (the cull masks); `batches` are cell ranges [c0, c1) whose
+    masks fit LS_MASK_BYTES (at least one cell each)."""
+    chunk: int
+    item_bases: np.ndarray  # cells + 1, int64
+    ref_bases: np.ndarray  # cells + 1, int64
+    batches: tuple[tuple[int, int], ...]
+
+    @property
+    def items(self) -> int:
+        return int(self.item_bases[-1])
+
+    def batch_refs(self, c0: int, c1: int) -> int:
+        return int(self.ref_bases[c1] - self.ref_bases[c0])
+
+
+def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
+               mask_bytes: int = LS_MASK_BYTES) -> BuildPlan:
+    """ranges: (cells, 2) begin, end of each cell's list."""
+    lengths = (ranges[:, 1].astype(np.int64) - ranges[:, 0]).clip(min=0)
+    chunks = np.maximum(1, -(-lengths // chunk))
+    item_bases = np.concatenate([[0], np.cumsum(per_cell * chunks)])
+    ref_bases = np.concatenate([[0], np.cumsum(lengths)])
+    max_refs = max(1, mask_bytes // (4 * patches))
+    batches, c0, cells = [], 0, len(lengths)
+    while c0 < cells:
+        c1 = int(np.searchsorted(ref_bases, ref_bases[c0] + max_refs, side="right")) - 1
+        c1 = min(max(c1, c0 + 1), cells)
+        batches.append((c0, c1))
+        c0 = c1
+    return BuildPlan(int(chunk), item_bases, ref_bases, tuple(batches))
+
+
+def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro: str):
+    """The same buffers under another array name (kernels bind the item offsets and the shaft
+    offsets under their own names)."""
+    other = dataclasses.replace(split, base=base, macro=macro)
+    return other, {new: bufs[old] for old, new in zip(split.names, other.names)}
+
+
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
                      n: int) -> LineSpaces:
-    """Line Spaces of all cells: count -> scan -> fill, all on the device."""
+    """Line Spaces of all cells: cull masks -> count -> scan -> fill, all on the device, in batches
+    of cells (their masks) and chunks of candidates (the driver's loop budget)."""
     n = check_n(n)
     per_cell = shafts_per_cell(n)
+    patches = 6 * n * n
     n_shafts = cells.count * per_cell
     # The limits in the order a bigger device would meet them: buffers per array, device memory,
     # then the 32-bit indices (which no device with less than 16 GiB for the offsets reaches).
@@ -264,8 +374,17 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         no_tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
                  "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
-                 "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1}
+                 "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
+                 "ls_candidate_chunk": candidate_chunk(device), "ls_work_items": 0, "ls_cell_batches": 0,
+                 "ls_pair_bits": False}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
+    ranges = device.read(cells.ranges, np.uint32, 2 * cells.count).reshape(-1, 2)
+    plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), min(LS_MASK_BYTES, device.max_buffer_bytes))
+    if plan.items + 1 > UINT32_MAX:
+        raise DeviceLimitError(
+            f"{plan.items} count/fill work items (shafts x chunks of {plan.chunk} candidates) overflow "
+            "32-bit item indices (uint, 2^32 - 1)")
+    chunked = plan.items != n_shafts
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
     try:
@@ -274,19 +393,55 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
         stats_buf = device.alloc("ls_stats", 16)
         temps.append(stats_buf)
-        cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes,
-                         ls_cell_ranges=cells.ranges, ls_cell_tris=cells.tris)
+        for name, values in (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)):
+            temps.append(device.upload(name, values.astype(np.uint32)))
+        most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
+        masks = device.alloc("ls_masks", 4 * max(most_refs * patches, 1), zero=False)
+        temps.append(masks)
+        cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
+                         ls_cell_tris=cells.tris, ls_item_bases=temps[-3], ls_ref_bases=temps[-2], ls_masks=masks)
         offset_bufs = offsets.alloc(device, zero=True)  # entry n_shafts stays 0: it becomes the total
         kept.extend(offset_bufs.values())
-        device.dispatch(offsets.bind(_with_test(device, LS_COUNT)), n_shafts,
-                        dict(cell_bufs, ls_stats=stats_buf, **offset_bufs), u)
-        total = _scan_split(device, offsets, offset_bufs, u)
+        if chunked:  # one entry per (shaft, chunk), gathered into the shaft offsets after the fill
+            items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
+            device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
+            item_bufs = items.alloc(device, zero=True)
+            temps.extend(item_bufs.values())
+        else:  # the items are the shafts: count and scan in the offsets themselves
+            items, item_bufs = _renamed(offsets, offset_bufs, "ls_item_offsets", "LS_ITEM")
+
+        def batch_uniforms(c0: int, c1: int) -> dict:
+            return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
+                        ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1)
+
+        def run_pass(spec: KernelSpec, bufs: dict, masks_ready: bool) -> None:
+            for c0, c1 in plan.batches:
+                bu = batch_uniforms(c0, c1)
+                if not masks_ready:
+                    device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+                device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]), bufs, bu)
+
+        pairs = int(plan.ref_bases[-1]) * per_cell
+        bits_bytes = 4 * (-(-pairs // 32))
+        keep_bits = pairs < UINT32_MAX and bits_bytes <= min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
+        if keep_bits:
+            try:
+                device.check_memory("ls_pair_bits", bits_bytes)
+            except DeviceLimitError:
+                keep_bits = False  # the fill tests every pair again instead
+        count_spec, fill_spec = _count_fill_specs(device, keep_bits)
+        if keep_bits:
+            cell_bufs["ls_pair_bits"] = device.alloc("ls_pair_bits", max(bits_bytes, 4), zero=True)
+            temps.append(cell_bufs["ls_pair_bits"])
+        run_pass(items.bind(count_spec), dict(cell_bufs, ls_stats=stats_buf, **item_bufs), False)
+        total = _scan_split(device, items, item_bufs, u)
         # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
         # for the wrap (a decreasing offset) on the device before trusting `total`.
         if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
             flag = device.alloc("ls_check_flag", 4)
             temps.append(flag)
-            device.dispatch(offsets.bind(LS_CHECK), n_shafts, dict(offset_bufs, ls_check_flag=flag), u)
+            check, check_bufs = _renamed(items, item_bufs, "ls_shaft_offsets", "LS_OFFSET")
+            device.dispatch(check.bind(LS_CHECK), plan.items, dict(check_bufs, ls_check_flag=flag), u)
             if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
                 raise DeviceLimitError(
                     f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
@@ -294,8 +449,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", total)
         tris_bufs = candidates.alloc(device, zero=False)
         kept.extend(tris_bufs.values())
-        fill = candidates.bind(offsets.bind(_with_test(device, LS_FILL)))
-        device.dispatch(fill, n_shafts, dict(cell_bufs, **offset_bufs, **tris_bufs), u)
+        fill = candidates.bind(items.bind(fill_spec))
+        run_pass(fill, dict(cell_bufs, **item_bufs, **tris_bufs), keep_bits or len(plan.batches) == 1)
+        if chunked:
+            gather = offsets.bind(items.bind(LS_GATHER))
+            device.dispatch(gather, n_shafts + 1, dict(item_bufs, ls_item_bases=cell_bufs["ls_item_bases"],
+                                                       **offset_bufs), batch_uniforms(0, cells.count))
+        device.dispatch(offsets.bind(LS_NONEMPTY), n_shafts, dict(offset_bufs, ls_stats=stats_buf), u)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
@@ -321,6 +481,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_exact_test": exact_test(device),
         "ls_offset_buffers": offsets.chunks,
         "ls_tri_buffers": candidates.chunks,
+        "ls_candidate_chunk": plan.chunk,
+        "ls_work_items": plan.items,
+        "ls_cell_batches": len(plan.batches),
+        "ls_pair_bits": keep_bits,
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits)

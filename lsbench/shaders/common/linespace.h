@@ -32,6 +32,13 @@
 #define LS_CANDIDATE(i) V(ls_shaft_tris)[i]
 #define LS_CANDIDATE_STORE(i, v) V(ls_shaft_tris)[i] = (v)
 #endif
+// The build's count and fill address one entry per work item, (shaft, chunk of candidates), in
+// ls_item_offsets (the count there, then its exclusive scan). Where every cell fits one chunk the
+// items are the shafts and linespace.py binds the shaft offsets themselves under this name.
+#ifndef LS_ITEM
+#define LS_ITEM(i) V(ls_item_offsets)[i]
+#define LS_ITEM_STORE(i, v) V(ls_item_offsets)[i] = (v)
+#endif
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
 
@@ -184,11 +191,31 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 }
 #endif  // shaft volumes
 
+#if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill) || defined(KERNEL_ls_masks)
+#define LS_CULL_MARGIN 0.05f       // cell-local units: 50 x ls_eps (linespace.py: LS_EPS)
+#define LS_CULL_BITS 0x3ffffffu     // bits 0..25: 13 axes x (below, above)
+#define LS_MEETS_PATCH 0x4000000u   // the triangle crosses the patch
+#define LS_ABOVE_PLANE 0x8000000u   // the triangle covers the cell and the patch lies above its plane
+#define LS_BELOW_PLANE 0x10000000u  // ... below it
+
+// fn(lo, hi, key): the largest cell c in [lo, hi) with buf[c] <= key, buf being an exclusive scan
+// over the cells (ls_ref_bases: a mask row's cell; ls_item_bases: a work item's cell).
+#define LS_CELL_SEARCH(fn, buf) INLINE uint fn(CTX_PARAM uint lo, uint hi, uint key) { \
+    while (hi - lo > 1u) { uint mid = lo + (hi - lo) / 2u; if (V(buf)[mid] <= key) lo = mid; else hi = mid; } \
+    return lo; }
+LS_CELL_SEARCH(ls_ref_cell, ls_ref_bases)
+#endif
+
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
+LS_CELL_SEARCH(ls_item_cell, ls_item_bases)
+#endif
+
+// A fill with the count's pair bits (LS_PAIR_BITS) tests nothing and binds no scene or masks.
+#if defined(KERNEL_ls_count) || (defined(KERNEL_ls_fill) && !defined(LS_PAIR_BITS))
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
-// Cheap outcomes first (ls_quick): all corners outside one plane -> no; all corners inside every
+// Cheap outcomes first (ls_side): all corners outside one plane -> no; all corners inside every
 // plane -> yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3)
 // and see whether anything is left (LS_CLIP_SH), or, by default, the equivalent exact separating-
 // axis test ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
@@ -277,21 +304,127 @@ INLINE int ls_sat_meets(uint n, LsShaft sh, float3 a, float3 b, float3 c, float 
     return 1;
 }
 
-// ---- Build: count pass (ls_count) and fill pass (ls_fill), one work item per (cell, shaft) ----
+// ---- Build: count pass (ls_count) and fill pass (ls_fill), one work item per (shaft, chunk) ----
 // Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
-// cell into ls_cell_tris). A work item walks its cell's candidates in list order, so the fill
-// writes each shaft's range sequentially: no atomics, deterministic order.
+// cell into ls_cell_tris). Cell c has k_c chunks of at most ls_chunk candidates (the driver's loop
+// budget, linespace.py: candidate_chunk) and 15 N^4 k_c work items from ls_item_bases[c], shaft-
+// major: item ls_item_bases[c] + shaft * k_c + chunk. A work item walks its chunk in list order,
+// so the scan of the item counts puts each chunk's candidates right after the previous chunk's and
+// the fill writes every shaft's list in cell-list order: no atomics, deterministic, and the same
+// lists as one item per shaft. A dispatch covers the cells [ls_cell_first, ls_cell_end) of one
+// batch (item ls_item_base + gid); their patch masks (ls_masks_kernel) start at dense reference
+// ls_ref_base.
+//
+// Per (shaft, triangle) pair, cheapest decision first (docs/linespace-build.md has the figures):
+// 1. cull: the AND of the triangle's masks (ls_masks_kernel) of the shaft's two patches; a common
+//    bit is an axis on which both patches, hence their hull, lie beyond the triangle by
+//    LS_CULL_MARGIN = 50 ls_eps, far outside what the tests of 3 accept;
+// 2. certain: the triangle crosses one of the two patches (LS_MEETS_PATCH), or it covers the
+//    cell's cut with its plane and the patches lie on opposite sides (LS_ABOVE/BELOW_PLANE), or
+//    after the facet planes of 3 left it undecided, one of its edges runs inside the shaft
+//    (ls_edge_in_shaft): the triangle meets the shaft volume itself, which every test of 3
+//    accepts with the margin ls_eps to spare;
+// 3. otherwise the facet planes (ls_side) and the exact test, as before.
+// 1 and 2 only skip work whose outcome they know: the lists are those of 3 alone (the tests
+// compare them with the numpy reference of lsbench/oracle/reference.py: shaft_candidates, and
+// docs/linespace-build.md with the lists of the build before 1 and 2 on Sponza).
+
+// Part [r.x, r.y] of segment a -> b on the inner side of plane pl (r.x > r.y: none).
+INLINE float2 ls_clip_range(float4 pl, float3 a, float3 b, float2 r) {
+    float da = ls_plane_dist(pl, a);
+    float db = ls_plane_dist(pl, b);
+    if (da > 0.0f && db > 0.0f) return make_float2(1.0f, 0.0f);
+    if (da > 0.0f) r.x = max(r.x, da / (da - db));
+    else if (db > 0.0f) r.y = min(r.y, da / (da - db));
+    return r;
+}
+
+// 1 when some point of the triangle edge a -> b lies in the shaft volume (inside all its facet
+// planes, no margin): the triangle then meets the shaft.
+INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p4, float4 p5, float4 p6,
+                            float4 p7, float3 a, float3 b) {
+    float2 r = make_float2(0.0f, 1.0f);
+    r = ls_clip_range(p0, a, b, r);
+    r = ls_clip_range(p1, a, b, r);
+    r = ls_clip_range(p2, a, b, r);
+    r = ls_clip_range(p3, a, b, r);
+    r = ls_clip_range(p4, a, b, r);
+    r = ls_clip_range(p5, a, b, r);
+    r = ls_clip_range(p6, a, b, r);
+    r = ls_clip_range(p7, a, b, r);
+    return r.x <= r.y ? 1 : 0;
+}
+
+// Does the triangle meet the shaft? Steps 1-3 above for candidate i of the cell (dense mask row r).
+INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, float3 lo, float3 inv, float eps,
+                         uint n, LsShaft sh, uint shaft, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
+                         float4 p5, float4 p6, float4 p7) {
+    uint ma = V(ls_masks)[r + mask_a];
+    uint mb = V(ls_masks)[r + mask_b];
+    if ((ma & mb & LS_CULL_BITS) != 0u) return 0;  // 1. cull
+    if (((ma | mb) & LS_MEETS_PATCH) != 0u || ((ma & LS_ABOVE_PLANE) != 0u && (mb & LS_BELOW_PLANE) != 0u) ||
+        ((ma & LS_BELOW_PLANE) != 0u && (mb & LS_ABOVE_PLANE) != 0u)) return 1;  // 2. certain from the masks
+    Triangle t = load_grid_triangle(CTX_ARG V(ls_cell_tris)[i]);
+    float3 a = (t.a - lo) * inv;
+    float3 b = (t.b - lo) * inv;
+    float3 c = (t.c - lo) * inv;
+    int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
+    int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
+    int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);
+    int s6 = ls_side(p6, a, b, c, eps), s7 = ls_side(p7, a, b, c, eps);
+    if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) return 0;  // 3. facet planes
+    if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) return 1;
+    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a) != 0) return 1;  // 2. certain: an edge inside
+#ifdef LS_CLIP_SH
+    return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // 3. exact: Sutherland-Hodgman
+#else
+    return ls_sat_meets(n, sh, a, b, c, eps);  // 3. exact: separating axes
+#endif
+}
+
+#endif  // triangle / shaft test
+
+#if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
+// With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
+// cell c's bits start at ls_ref_bases[c] * 15 N^4, shaft-major), and the fill only reads them.
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
-    uint cell = gid / shafts;
-    uint shaft = gid % shafts;
+    uint item = gid + V(ls_item_base);
+    uint cell = ls_item_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), item);
+    uint item0 = V(ls_item_bases)[cell];
+    uint chunks = (V(ls_item_bases)[cell + 1u] - item0) / shafts;
+    uint shaft = (item - item0) / chunks;
+    uint chunk = (item - item0) % chunks;
+    uint begin = V(ls_cell_ranges)[2u * cell];
+    uint end = V(ls_cell_ranges)[2u * cell + 1u];
+    uint first_i = begin + chunk * V(ls_chunk);
+    uint end_i = end - first_i > V(ls_chunk) ? first_i + V(ls_chunk) : end;
+#ifdef LS_PAIR_BITS
+    uint bit = V(ls_ref_bases)[cell] * shafts + shaft * (end - begin) + (first_i - begin);
+#endif
+#if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
+    uint first = LS_ITEM(item);
+    uint count = 0u;
+    for (uint i = first_i; i < end_i; ++i, ++bit) {
+        if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
+            LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+            count += 1u;
+        }
+    }
+#else
     float eps = V(ls_eps);
     float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
     float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
     float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
-    uint begin = V(ls_cell_ranges)[2u * cell];
-    uint end = V(ls_cell_ranges)[2u * cell + 1u];
-    LsShaft sh = ls_decode(V(ls_n), shaft);
+    uint n = V(ls_n);
+    LsShaft sh = ls_decode(n, shaft);
+    uint n2 = n * n;
+    uint patches = 6u * n2;
+    uint mask_a = U32(sh.fa) * n2 + sh.pa;
+    uint mask_b = U32(sh.fb) * n2 + sh.pb;
+    uint ref0 = V(ls_ref_bases)[cell] - V(ls_ref_base) + (first_i - begin);  // mask row of first_i
     uint pb = shaft * U32(LS_MAX_PLANES);
     float4 p0 = V(ls_planes)[pb];
     float4 p1 = V(ls_planes)[pb + 1u];
@@ -302,41 +435,180 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
 #ifdef KERNEL_ls_fill
-    uint first = LS_OFFSET(gid);
+    uint first = LS_ITEM(item);
 #endif
     uint count = 0u;
-    for (uint i = begin; i < end; ++i) {
-        uint tri = V(ls_cell_tris)[i];
-        Triangle t = load_grid_triangle(CTX_ARG tri);
-        float3 a = (t.a - lo) * inv;
-        float3 b = (t.b - lo) * inv;
-        float3 c = (t.c - lo) * inv;
-        int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
-        int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
-        int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);
-        int s6 = ls_side(p6, a, b, c, eps), s7 = ls_side(p7, a, b, c, eps);
-        int meets = 0;
-        if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) meets = 0;
-        else if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) meets = 1;
-#ifdef LS_CLIP_SH
-        else meets = ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // reference: Sutherland-Hodgman
-#else
-        else meets = ls_sat_meets(V(ls_n), sh, a, b, c, eps);
+#ifdef LS_PAIR_BITS
+    uint word = 0u;
 #endif
+    for (uint i = first_i; i < end_i; ++i) {
+        int meets = ls_pair_meets(CTX_ARG i, (ref0 + (i - first_i)) * patches, mask_a, mask_b, lo, inv, eps, n, sh,
+                                  shaft, p0, p1, p2, p3, p4, p5, p6, p7);
         if (meets != 0) {
 #ifdef KERNEL_ls_fill
-            LS_CANDIDATE_STORE(first + count, tri);
+            LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
 #endif
             count += 1u;
         }
+#ifdef LS_PAIR_BITS
+        if (meets != 0) word |= 1u << (bit & 31u);
+        if ((bit & 31u) == 31u || i + 1u == end_i) {  // word full, or the chunk's last: neighbours share it
+            if (word != 0u) ATOMIC_OR(V(ls_pair_bits)[bit >> 5u], word);
+            word = 0u;
+        }
+        bit += 1u;
+#endif
     }
+#endif
 #ifndef KERNEL_ls_fill
-    LS_OFFSET_STORE(gid, count);  // the count, until the scan makes it the offset
-    if (count > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
+    LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
 #endif
 }
-#endif  // triangle / shaft test and build
+#endif  // build: count and fill
+
+#ifdef KERNEL_ls_masks
+// ---- Build: the masks of a batch of cells' triangles ---------------------------------------
+// One work item per (reference, face): dense reference ls_ref_base + gid / 6 (numbered by
+// ls_ref_bases) of its cell, writing the N^2 masks face * N^2 + patch of its row of 6 N^2.
+// Cull bits: bit 2k is set when on axis k the patch lies below the triangle by LS_CULL_MARGIN
+// (scaled by the axis length), bit 2k + 1 when above. A shaft's hull projects onto an axis as the
+// hull of its two patches' projections, so the hull lies beyond the triangle on axis k iff both
+// patches have the same bit: one AND per pair. Axes: the 13 of a triangle/box test (Akenine-
+// Moeller 2001), the cell axes, the triangle normal and the edges crossed with the cell axes; none
+// depends on the shaft, so a triangle's 6 N^2 masks serve all 15 N^4 shafts of its cell.
+// Certain bits: LS_MEETS_PATCH, LS_ABOVE_PLANE / LS_BELOW_PLANE (linespace.h, build section).
+// Projection interval of a patch (face axis `axis` at coordinate `side`, in-face ranges u, v) on
+// axis ax: the corners differ only in u and v.
+INLINE float2 ls_patch_interval(float3 ax, int axis, float side, float2 u, float2 v) {
+    float au = comp3(ax, (axis + 1) % 3);
+    float av = comp3(ax, (axis + 2) % 3);
+    float base = comp3(ax, axis) * side;
+    return make_float2(base + min(au * u.x, au * u.y) + min(av * v.x, av * v.y),
+                       base + max(au * u.x, au * u.y) + max(av * v.x, av * v.y));
+}
+
+// Cull bits of axis ax: t = the triangle's interval on it.
+INLINE uint ls_axis_bits(float3 ax, float2 t, int axis, float side, float2 u, float2 v, uint bit) {
+    float2 h = ls_patch_interval(ax, axis, side, u, v);
+    float m = LS_CULL_MARGIN * length(ax);
+    return ((h.y < t.x - m ? 1u : 0u) | (h.x > t.y + m ? 2u : 0u)) << bit;
+}
+
+INLINE float2 ls_tri_interval(float3 ax, float3 a, float3 b, float3 c) {
+    float ta = dot(ax, a), tb = dot(ax, b), tc = dot(ax, c);
+    return make_float2(min(ta, min(tb, tc)), max(ta, max(tb, tc)));
+}
+
+// Keep t in r where lo <= x0 + t (x1 - x0) <= hi (Liang-Barsky, one coordinate).
+INLINE float2 ls_clip_1d(float x0, float x1, float lo, float hi, float2 r) {
+    float d = x1 - x0;
+    if (d == 0.0f) return (x0 < lo || x0 > hi) ? make_float2(1.0f, 0.0f) : r;
+    float t0 = (lo - x0) / d;
+    float t1 = (hi - x0) / d;
+    return make_float2(max(r.x, min(t0, t1)), min(r.y, max(t0, t1)));
+}
+
+INLINE float3 ls_plane_cut(float3 p, float3 q, float dp, float dq) {
+    return p + (q - p) * (dp / (dp - dq));
+}
+
+// 1 when the triangle holds its plane's whole cut with the cell: every cell corner on the inner
+// side of each edge (within the triangle's plane). Every segment that crosses the plane inside
+// the cell then crosses the triangle.
+INLINE int ls_edge_covers(float3 nrm, float3 v, float3 e) {
+    float3 inward = cross(nrm, e);
+    // The smallest dot(in, x - v) over the unit cube's corners.
+    return min(inward.x, 0.0f) + min(inward.y, 0.0f) + min(inward.z, 0.0f) - dot(inward, v) >= 0.0f ? 1 : 0;
+}
+
+INLINE int ls_covers_cell(float3 a, float3 b, float3 c, float3 nrm) {
+    if (dot(nrm, nrm) == 0.0f) return 0;
+    return ls_edge_covers(nrm, a, b - a) * ls_edge_covers(nrm, b, c - b) * ls_edge_covers(nrm, c, a - c);
+}
+
+INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
+    uint n = V(ls_n);
+    uint n2 = n * n;
+    uint ref = V(ls_ref_base) + gid / 6u;
+    int face = I32(gid % 6u);
+    uint cell = ls_ref_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), ref);
+    float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
+    float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
+    float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
+    uint tri = V(ls_cell_tris)[V(ls_cell_ranges)[2u * cell] + (ref - V(ls_ref_bases)[cell])];
+    Triangle t = load_grid_triangle(CTX_ARG tri);
+    float3 a = (t.a - lo) * inv;
+    float3 b = (t.b - lo) * inv;
+    float3 c = (t.c - lo) * inv;
+    float3 nrm = cross(b - a, c - a);
+    float3 ex = make_float3(1.0f, 0.0f, 0.0f), ey = make_float3(0.0f, 1.0f, 0.0f), ez = make_float3(0.0f, 0.0f, 1.0f);
+    float3 e0 = b - a, e1 = c - b, e2 = a - c;
+    float3 x0 = cross(e0, ex), x1 = cross(e0, ey), x2 = cross(e0, ez);
+    float3 x3 = cross(e1, ex), x4 = cross(e1, ey), x5 = cross(e1, ez);
+    float3 x6 = cross(e2, ex), x7 = cross(e2, ey), x8 = cross(e2, ez);
+    float2 tx = ls_tri_interval(ex, a, b, c), ty = ls_tri_interval(ey, a, b, c), tz = ls_tri_interval(ez, a, b, c);
+    float2 tn = ls_tri_interval(nrm, a, b, c);
+    float2 t0 = ls_tri_interval(x0, a, b, c), t1 = ls_tri_interval(x1, a, b, c), t2 = ls_tri_interval(x2, a, b, c);
+    float2 t3 = ls_tri_interval(x3, a, b, c), t4 = ls_tri_interval(x4, a, b, c), t5 = ls_tri_interval(x5, a, b, c);
+    float2 t6 = ls_tri_interval(x6, a, b, c), t7 = ls_tri_interval(x7, a, b, c), t8 = ls_tri_interval(x8, a, b, c);
+    int covers = ls_covers_cell(a, b, c, nrm);
+    float nd = dot(nrm, a);
+    // The triangle's cut with the face plane (x0 -> x1 in face coordinates), if it crosses it; a
+    // triangle in the plane gets no LS_MEETS_PATCH.
+    int axis = face / 2;
+    float side = F32(face % 2);
+    float da = comp3(a, axis) - side, db = comp3(b, axis) - side, dc = comp3(c, axis) - side;
+    int ia = da <= 0.0f ? 1 : 0, ib = db <= 0.0f ? 1 : 0, ic = dc <= 0.0f ? 1 : 0;
+    int cuts = (ia == ib && ib == ic) ? 0 : 1;
+    float2 cut0 = ls_face_uv(ia != ib ? ls_plane_cut(a, b, da, db) : ls_plane_cut(b, c, db, dc), axis);
+    float2 cut1 = ls_face_uv((ia != ib && ib != ic) ? ls_plane_cut(b, c, db, dc) : ls_plane_cut(c, a, dc, da), axis);
+    float fn = F32(n);
+    uint row = (gid / 6u) * 6u * n2 + U32(face) * n2;
+    for (uint p = 0u; p < n2; ++p) {
+        float pu = F32(I32(p % n)), pv = F32(I32(p / n));
+        float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
+        float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
+        uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u) | ls_axis_bits(ey, ty, axis, side, u, v, 2u)
+                  | ls_axis_bits(ez, tz, axis, side, u, v, 4u) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u)
+                  | ls_axis_bits(x0, t0, axis, side, u, v, 8u) | ls_axis_bits(x1, t1, axis, side, u, v, 10u)
+                  | ls_axis_bits(x2, t2, axis, side, u, v, 12u) | ls_axis_bits(x3, t3, axis, side, u, v, 14u)
+                  | ls_axis_bits(x4, t4, axis, side, u, v, 16u) | ls_axis_bits(x5, t5, axis, side, u, v, 18u)
+                  | ls_axis_bits(x6, t6, axis, side, u, v, 20u) | ls_axis_bits(x7, t7, axis, side, u, v, 22u)
+                  | ls_axis_bits(x8, t8, axis, side, u, v, 24u);
+        if (cuts != 0) {
+            float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
+            r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
+            if (r.x <= r.y) bits |= LS_MEETS_PATCH;
+        }
+        if (covers != 0) {
+            float2 h = ls_patch_interval(nrm, axis, side, u, v);
+            if (h.x > nd) bits |= LS_ABOVE_PLANE;
+            if (h.y < nd) bits |= LS_BELOW_PLANE;
+        }
+        V(ls_masks)[row + p] = bits;
+    }
+}
+#endif
+
+#ifdef KERNEL_ls_gather
+// ---- Build: shaft offsets from the item offsets, where some cell has more than one chunk ----
+// Shaft s of cell c starts where its first chunk does; entry 15 N^4 * cells is the total.
+INLINE void ls_gather_kernel(CTX_PARAM uint gid) {
+    uint shafts = V(ls_shafts);
+    uint cell = gid / shafts;
+    uint item = V(ls_item_bases)[cell];
+    if (cell < V(ls_cell_end)) item += (gid % shafts) * ((V(ls_item_bases)[cell + 1u] - item) / shafts);
+    LS_OFFSET_STORE(gid, LS_ITEM(item));
+}
+#endif
+
+#ifdef KERNEL_ls_nonempty
+// ---- Build stats: shafts with at least one candidate ----------------------------------------
+INLINE void ls_nonempty_kernel(CTX_PARAM uint gid) {
+    if (LS_OFFSET(gid + 1u) > LS_OFFSET(gid)) ATOMIC_ADD(V(ls_stats)[0], 1u);
+}
+#endif
 
 #ifdef KERNEL_ls_check
 // ---- 32-bit overflow check of the shaft offsets ---------------------------------------------
