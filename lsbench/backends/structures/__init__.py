@@ -3,12 +3,13 @@
 Each entry's `recipe` has prepare(device) (compile what the build uses) and
 build(device, scene_buffers, n_tris, geometry, params) -> BuildResult (base.py), written against
 the Device interface only. A recipe's module docstring names its kernels' headers in
-shaders/common/: grid.h, grid_ls.h, octree.h with svo.h / esvo.h, octree_ls.h, linespace.h."""
+shaders/common/: grid.h, grid_ls.h, octree.h with svo.h / esvo.h, octree_ls.h, linespace.h, bvh.h."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from . import esvo, grid, grid_ls, svo
+from . import bvh, esvo, grid, grid_ls, svo
+from .bvh_ls import bvh_ls
 from .octree_ls import esvo_ls, svo_ls
 
 
@@ -28,6 +29,8 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("grid-ls", grid_ls, False, True, "grid with a Line Space per non-empty voxel (3.3.3, Alg. 2)"),
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
+    StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, SAH leaf collapse (Fig. 4c baseline)"),
+    StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)"),
 )
 STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
 

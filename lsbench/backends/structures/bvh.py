@@ -1,0 +1,196 @@
+"""`bvh`: a binary bounding volume hierarchy built on the device, the structure a renderer would
+pick instead of the grids and octrees (the thesis' Fig. 4c baseline). Kernels: shaders/common/bvh.h
+on scene.h and trace.h. All steps run on the device, written once for both backends:
+
+1. Morton codes: a 30-bit code per triangle centroid over the scene bounds (10 bits per axis).
+2. Sort: an LSD radix sort of (code, triangle id), 5 bits per pass, 6 passes; each pass is a
+   per-chunk digit count, Device.exclusive_scan of the digit-major counts, and a stable scatter
+   (bvh.h). The sorted ids are the structure's voxel_tris: every leaf is a range of it.
+3. Hierarchy: Karras 2012 (a binary radix tree over the sorted codes, one work item per inner
+   node, equal codes ordered by position).
+4. Box fit, bottom up with an atomic arrival counter per node (Karras 2012, 4), and in the same pass
+   the quality pass: the surface-area heuristic decides which subtrees of at most `leaf_size`
+   triangles become leaves (bvh.h: bvh_fit_kernel). `stats["sah_cost"]` is the SAH cost of the
+   tree as built, `stats["sah_cost_plain"]` that of the plain LBVH (every node of at most leaf_size
+   triangles a leaf), both from the same pass, so every build measures the gain.
+5. Compaction: the inner nodes that stay nodes are flagged, scanned, and written in the 64-byte
+   node layout of Aila & Laine 2009 (bvh.h: both children's boxes in the parent, 48 bytes in
+   bvh_nodes, links and leaf ranges in bvh_links, 16 bytes), into buffers of exactly that size.
+
+Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
+(32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
+costs (4 bytes each per node or primitive) and the fitted boxes (32 bytes per inner node).
+
+Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
+scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
+per-buffer limit at allocation (llvmpipe 128 MiB: 2.8 M nodes of 48 bytes, ~30 M triangles for the
+sort buffers)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..device import Device, DeviceBuffer, DeviceLimitError
+from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform, trace_spec
+from .base import BuildParams, BuildResult, GridGeometry
+
+BVH_HEADERS = ("geometry.h", "scene.h", "bvh.h")
+BVH_HEADERS_NO_SCENE = ("geometry.h", "bvh.h")  # kernels that bind no scene buffers (scene.h reads them)
+BVH_UNIFORMS = GRID_UNIFORMS + (Uniform("bvh_n", "uint"), Uniform("bvh_leaf_size", "uint"),
+                                Uniform("bvh_sah", "uint"), Uniform("bvh_node_count", "uint"))
+SORT_UNIFORMS = BVH_UNIFORMS + (Uniform("sort_shift", "uint"), Uniform("sort_chunk", "uint"),
+                                Uniform("sort_chunks", "uint"))
+SORT_CHUNK = 256  # keys per work item of the sort (a loop of 256 stays far inside llvmpipe's budget)
+SORT_BITS, SORT_DIGITS, MORTON_BITS = 5, 32, 30  # must match shaders/common/bvh.h
+NODE_BYTES = 64  # bvh_nodes 48 + bvh_links 16 (shaders/common/bvh.h)
+LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
+DEFAULT_LEAF_SIZE = 8
+MAX_TRIANGLES = 2**31 - 1
+
+MORTON = KernelSpec("bvh_morton", BVH_HEADERS, "bvh_morton_kernel",
+                    SCENE_BUFFERS + (Buf("sort_keys", "uint", "w"), Buf("sort_ids", "uint", "w")), BVH_UNIFORMS)
+SORT_COUNT = KernelSpec("bvh_sort_count", BVH_HEADERS_NO_SCENE, "bvh_sort_count_kernel",
+                        (Buf("sort_keys", "uint", "r"), Buf("sort_counts", "uint", "rw")), SORT_UNIFORMS)
+SORT_SCATTER = KernelSpec("bvh_sort_scatter", BVH_HEADERS_NO_SCENE, "bvh_sort_scatter_kernel",
+                          (Buf("sort_keys", "uint", "r"), Buf("sort_ids", "uint", "r"), Buf("sort_counts", "uint", "rw"),
+                           Buf("sorted_keys", "uint", "w"), Buf("sorted_ids", "uint", "w")), SORT_UNIFORMS)
+EMIT = KernelSpec("bvh_emit", BVH_HEADERS_NO_SCENE, "bvh_emit_kernel",
+                  (Buf("bvh_keys", "uint", "r"), Buf("bvh_children", "uint", "w"), Buf("bvh_ranges", "uint", "w"),
+                   Buf("bvh_parents", "uint", "w")), BVH_UNIFORMS)
+FIT = KernelSpec("bvh_fit", BVH_HEADERS, "bvh_fit_kernel",
+                 SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
+                                  Buf("bvh_ranges", "uint", "r"), Buf("bvh_parents", "uint", "r"),
+                                  Buf("bvh_arrivals", "uint", "rw"), Buf("bvh_fit_boxes", "float4", "rw"),
+                                  Buf("bvh_costs", "float", "rw"), Buf("bvh_collapse", "uint", "w")), BVH_UNIFORMS)
+KEEP = KernelSpec("bvh_keep", BVH_HEADERS_NO_SCENE, "bvh_keep_kernel",
+                  (Buf("bvh_ranges", "uint", "r"), Buf("bvh_parents", "uint", "r"), Buf("bvh_collapse", "uint", "r"),
+                   Buf("bvh_keep", "uint", "w")), BVH_UNIFORMS)
+WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
+                   SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
+                                    Buf("bvh_ranges", "uint", "r"), Buf("bvh_ids", "uint", "r"),
+                                    Buf("bvh_fit_boxes", "float4", "r"), Buf("bvh_nodes", "float4", "w"),
+                                    Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
+BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, KEEP, WRITE)
+
+BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
+TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS, GRID_UNIFORMS)
+
+
+def check_leaf_size(value) -> int:
+    """The most triangles per leaf; one of LEAF_SIZES (0: the default)."""
+    size = int(value) or DEFAULT_LEAF_SIZE
+    if size not in LEAF_SIZES:
+        raise ValueError(f"leaf_size must be one of {', '.join(map(str, LEAF_SIZES))}, got {value!r}")
+    return size
+
+
+def prepare(device: Device) -> None:
+    for spec in BUILD_SPECS:
+        device.compile(spec)
+
+
+def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict
+                        ) -> tuple[DeviceBuffer, DeviceBuffer]:
+    """Build steps 1-2: the Morton codes and the triangle ids sorted by them (keys, ids)."""
+    keys = device.alloc("sort_keys", 4 * n_tris, zero=False)
+    ids = device.alloc("sort_ids", 4 * n_tris, zero=False)
+    out_keys = device.alloc("sorted_keys", 4 * n_tris, zero=False)
+    out_ids = device.alloc("sorted_ids", 4 * n_tris, zero=False)
+    chunks = -(-n_tris // SORT_CHUNK)
+    counts = device.alloc("sort_counts", 4 * SORT_DIGITS * chunks, zero=False)
+    try:
+        device.dispatch(MORTON, n_tris, dict(scene_buffers, sort_keys=keys, sort_ids=ids), uniforms)
+        for shift in range(0, MORTON_BITS, SORT_BITS):
+            u = dict(uniforms, sort_shift=shift, sort_chunk=SORT_CHUNK, sort_chunks=chunks)
+            device.dispatch(SORT_COUNT, chunks, {"sort_keys": keys, "sort_counts": counts}, u)
+            device.scan_in_place(counts, SORT_DIGITS * chunks)
+            device.dispatch(SORT_SCATTER, chunks, {"sort_keys": keys, "sort_ids": ids, "sort_counts": counts,
+                                                   "sorted_keys": out_keys, "sorted_ids": out_ids}, u)
+            keys, ids, out_keys, out_ids = out_keys, out_ids, keys, ids
+    except BaseException:
+        for b in (keys, ids, out_keys, out_ids, counts):
+            device.release(b)
+        raise
+    for b in (out_keys, out_ids, counts):
+        device.release(b)
+    return keys, ids
+
+
+def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry, leaf_size: int,
+              sah: bool = True) -> tuple[dict[str, DeviceBuffer], dict]:
+    """Build steps 1-5 (module docstring). Returns the structure's buffers (bvh_nodes, bvh_links,
+    voxel_tris) and the build's stats."""
+    if n_tris > MAX_TRIANGLES:
+        raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
+    if n_tris < 1:
+        raise ValueError("bvh: the scene has no triangles")
+    inner = n_tris - 1
+    u = dict(geometry.uniforms(), bvh_n=n_tris, bvh_leaf_size=leaf_size, bvh_sah=int(sah), bvh_node_count=0)
+    keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
+    temps = [keys]
+    made = [tris]
+    try:
+        def temp(name, nbytes, zero=False):
+            buf = device.alloc(name, nbytes, zero=zero)
+            temps.append(buf)
+            return buf
+
+        children = temp("bvh_children", 8 * inner)
+        ranges = temp("bvh_ranges", 8 * inner)
+        parents = temp("bvh_parents", 4 * (inner + n_tris))
+        boxes = temp("bvh_fit_boxes", 32 * inner)
+        costs = temp("bvh_costs", 8 * inner)
+        collapse = temp("bvh_collapse", 4 * inner)
+        fit_bufs = dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges,
+                        bvh_parents=parents, bvh_fit_boxes=boxes, bvh_costs=costs, bvh_collapse=collapse)
+        stats: dict = {"triangles": n_tris, "leaf_size": leaf_size, "quality_pass": "sah-collapse" if sah else "none"}
+        if inner > 0:
+            device.dispatch(EMIT, inner, {"bvh_keys": keys, "bvh_children": children, "bvh_ranges": ranges,
+                                          "bvh_parents": parents}, u)
+            temps.remove(keys)
+            device.release(keys)
+            arrivals = temp("bvh_arrivals", 4 * inner, zero=True)
+            device.dispatch(FIT, n_tris, dict(fit_bufs, bvh_arrivals=arrivals), u)
+            root = device.read(boxes, np.float32, 8)
+            root_area = _area(root[:3], root[4:7])
+            cost, plain = (float(c) / root_area if root_area > 0 else 0.0 for c in device.read(costs, np.float32, 2))
+            stats.update(sah_cost=cost, sah_cost_plain=plain)
+            keep = temp("bvh_keep", 4 * inner)
+            device.dispatch(KEEP, inner, {"bvh_ranges": ranges, "bvh_parents": parents, "bvh_collapse": collapse,
+                                          "bvh_keep": keep}, u)
+            ids, n_nodes = device.exclusive_scan(keep, inner, "bvh_ids")
+            temps.append(ids)
+        else:
+            stats["sah_cost"] = stats["sah_cost_plain"] = 0.0
+            ids, n_nodes = temp("bvh_ids", 4, zero=True), 0
+        nodes = device.alloc("bvh_nodes", 48 * max(n_nodes, 1), zero=False)
+        made.append(nodes)
+        links = device.alloc("bvh_links", 16 * max(n_nodes, 1), zero=False)
+        made.append(links)
+        device.dispatch(WRITE, max(inner, 1) if n_nodes else 1,
+                        dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_ids=ids,
+                             bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links), dict(u, bvh_node_count=n_nodes))
+        device.finish()
+    except BaseException:
+        for b in made:
+            device.release(b)
+        raise
+    finally:
+        temp_bytes = sum(b.nbytes for b in temps)
+        for b in temps:
+            device.release(b)
+    stats.update({"nodes": max(n_nodes, 1), "leaves": max(n_nodes, 1) + 1 if n_nodes else 1,
+                  "references": n_tris, "node_bytes": NODE_BYTES, "temp_bytes": int(temp_bytes)})
+    return {"bvh_nodes": nodes, "bvh_links": links, "voxel_tris": tris}, stats
+
+
+def _area(lo, hi) -> float:
+    e = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return float(2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0]))
+
+
+def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+          params: BuildParams) -> BuildResult:
+    leaf_size = check_leaf_size(params.leaf_size)
+    buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
+                               sah=params.options.get("bvh_quality", "sah") != "none")
+    return BuildResult(buffers, geometry.uniforms(), TRACE_BVH, stats)

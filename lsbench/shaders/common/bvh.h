@@ -1,0 +1,462 @@
+// `bvh` and `bvh-ls`: a binary BVH built on the device (a linear BVH: Morton codes of the
+// triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
+// construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
+// collapse), and its stack traversal (Aila & Laine 2009, "Understanding the efficiency of ray
+// traversal on GPUs": both children's boxes in the parent, near child first). bvh-ls gives the
+// large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
+// Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
+// writer, Line Space cells, traversal) also scene.h, the traversal trace.h (and for bvh-ls
+// linespace.h and octree_ls.h). The host side: backends/structures/bvh.py.
+//
+// Buffers of the finished structure (the layout of a node: 64 bytes in two buffers):
+//   bvh_nodes  3 float4 per node, the boxes of its two children c0, c1 as Aila & Laine store them:
+//              (c0.lo.x, c0.hi.x, c0.lo.y, c0.hi.y), (c1.lo.x, c1.hi.x, c1.lo.y, c1.hi.y),
+//              (c0.lo.z, c0.hi.z, c1.lo.z, c1.hi.z)                                     48 bytes
+//   bvh_links  1 uint4 per node: (ref0, ref1, count0, count1). count 0: the child is the inner
+//              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count)  16 bytes
+//   voxel_tris the triangle ids in Morton order (every leaf a contiguous range of it; trace.h
+//              tests a cell's plain list from this buffer, whatever the structure)
+// Node 0 is the root. A scene of at most leaf-size triangles has one node whose child 0 is a leaf
+// of all of them and child 1 none (ref BVH_NONE, count 0).
+
+#define BVH_NONE 0xffffffffu
+#define BVH_PRIM 0x80000000u  // Karras child code: a primitive (sorted position) instead of an inner node
+#define BVH_STACK 64          // traversal stack: deeper than any Karras tree of 30-bit codes + 32-bit ids
+#define BVH_FLT_MAX 3.4028235e38f
+
+#ifdef LANG_GLSL
+#define BVH_CLZ(x) (31 - findMSB(x))
+#else
+#define BVH_CLZ(x) I32(clz(x))
+#endif
+
+STRUCT(Box) { float3 lo; float3 hi; };
+
+INLINE Box box_union(Box a, Box b) {
+    Box u;
+    u.lo = min(a.lo, b.lo);
+    u.hi = max(a.hi, b.hi);
+    return u;
+}
+
+INLINE float box_area(Box b) {
+    float3 e = max(b.hi - b.lo, make_float3(0.0f, 0.0f, 0.0f));
+    return 2.0f * (e.x * e.y + e.y * e.z + e.z * e.x);
+}
+
+#ifdef KERNEL_bvh_morton
+// ---- Build 1: a 30-bit Morton code per triangle centroid (10 bits per axis over the bounds) ----
+// grid space over the scene's bounds (scene.h), divided by grid_res: [0, 1)^3.
+INLINE uint bvh_spread10(uint x) {  // 10 bits -> every third bit
+    x &= 0x3ffu;
+    x = (x | (x << 16)) & 0x030000ffu;
+    x = (x | (x << 8)) & 0x0300f00fu;
+    x = (x | (x << 4)) & 0x030c30c3u;
+    x = (x | (x << 2)) & 0x09249249u;
+    return x;
+}
+
+INLINE void bvh_morton_kernel(CTX_PARAM uint tri) {
+    Triangle t = load_grid_triangle(CTX_ARG tri);
+    float3 res = make_float3(F32(V(grid_res).x), F32(V(grid_res).y), F32(V(grid_res).z));
+    float3 c = (t.a + t.b + t.c) * (1.0f / 3.0f) / res * 1024.0f;
+    uint x = U32(clamp(c.x, 0.0f, 1023.0f));
+    uint y = U32(clamp(c.y, 0.0f, 1023.0f));
+    uint z = U32(clamp(c.z, 0.0f, 1023.0f));
+    V(sort_keys)[tri] = bvh_spread10(x) | (bvh_spread10(y) << 1) | (bvh_spread10(z) << 2);
+    V(sort_ids)[tri] = tri;
+}
+#endif
+
+#if defined(KERNEL_bvh_sort_count) || defined(KERNEL_bvh_sort_scatter)
+// ---- Build 2: LSD radix sort of (code, triangle id), BVH_RADIX bits per pass -----------------
+// Each work item owns a chunk of sort_chunk consecutive keys. Count: the chunk's histogram of the
+// pass's digit into sort_counts[digit * chunks + chunk] (the item owns those entries: no atomics);
+// Device.exclusive_scan of that digit-major array gives every (digit, chunk) its first output
+// slot; scatter: the item walks its chunk in order and writes each key to its digit's next slot.
+// Equal digits keep their order (stable), so the passes from the low to the high digit sort.
+#define BVH_RADIX 5
+#define BVH_DIGITS 32u
+INLINE uint bvh_digit(CTX_PARAM uint key) { return (key >> V(sort_shift)) & (BVH_DIGITS - 1u); }
+#endif
+
+#ifdef KERNEL_bvh_sort_count
+INLINE void bvh_sort_count_kernel(CTX_PARAM uint chunk) {
+    uint chunks = V(sort_chunks);
+    for (uint d = 0u; d < BVH_DIGITS; ++d) V(sort_counts)[d * chunks + chunk] = 0u;
+    uint begin = chunk * V(sort_chunk);
+    uint end = min(begin + V(sort_chunk), V(bvh_n));
+    for (uint i = begin; i < end; ++i) V(sort_counts)[bvh_digit(CTX_ARG V(sort_keys)[i]) * chunks + chunk] += 1u;
+}
+#endif
+
+#ifdef KERNEL_bvh_sort_scatter
+INLINE void bvh_sort_scatter_kernel(CTX_PARAM uint chunk) {
+    uint chunks = V(sort_chunks);
+    uint begin = chunk * V(sort_chunk);
+    uint end = min(begin + V(sort_chunk), V(bvh_n));
+    for (uint i = begin; i < end; ++i) {
+        uint key = V(sort_keys)[i];
+        uint slot = bvh_digit(CTX_ARG key) * chunks + chunk;
+        uint at = V(sort_counts)[slot];
+        V(sort_counts)[slot] = at + 1u;
+        V(sorted_keys)[at] = key;
+        V(sorted_ids)[at] = V(sort_ids)[i];
+    }
+}
+#endif
+
+#ifdef KERNEL_bvh_emit
+// ---- Build 3: the hierarchy (Karras 2012, Fig. 4), one work item per inner node i < n - 1 ----
+// delta(i, j): the common prefix of the sorted codes i and j, the position breaking ties between
+// equal codes (32 + common prefix of i and j), -1 outside [0, n). Node i covers [min(i, j),
+// max(i, j)]; its split gamma is where the prefix of the range ends. Writes the two children
+// (inner node id, or BVH_PRIM | sorted position), the range, and every node's parent
+// (bvh_parents: inner nodes 0..n-2, then the primitives at n-1+k; the root's is BVH_NONE).
+INLINE int bvh_delta(CTX_PARAM int i, int j) {
+    int n = I32(V(bvh_n));
+    if (j < 0 || j >= n) return -1;
+    uint ki = V(bvh_keys)[i];
+    uint kj = V(bvh_keys)[j];
+    if (ki == kj) return 32 + BVH_CLZ(U32(i) ^ U32(j));
+    return BVH_CLZ(ki ^ kj);
+}
+
+INLINE void bvh_emit_kernel(CTX_PARAM uint gid) {
+    int i = I32(gid);
+    int n = I32(V(bvh_n));
+    int d = bvh_delta(CTX_ARG i, i + 1) - bvh_delta(CTX_ARG i, i - 1) > 0 ? 1 : -1;
+    int dmin = bvh_delta(CTX_ARG i, i - d);
+    int lmax = 2;
+    while (bvh_delta(CTX_ARG i, i + lmax * d) > dmin) lmax *= 2;
+    int l = 0;
+    for (int t = lmax / 2; t >= 1; t /= 2)
+        if (bvh_delta(CTX_ARG i, i + (l + t) * d) > dmin) l += t;
+    int j = i + l * d;
+    int dnode = bvh_delta(CTX_ARG i, j);
+    int s = 0;
+    for (int div = 2; ; div *= 2) {
+        int t = (l + div - 1) / div;
+        if (bvh_delta(CTX_ARG i, i + (s + t) * d) > dnode) s += t;
+        if (t <= 1) break;
+    }
+    int gamma = i + s * d + min(d, 0);
+    int first = min(i, j);
+    int last = max(i, j);
+    uint left = first == gamma ? (BVH_PRIM | U32(gamma)) : U32(gamma);
+    uint right = last == gamma + 1 ? (BVH_PRIM | U32(gamma + 1)) : U32(gamma + 1);
+    V(bvh_children)[2u * gid] = left;
+    V(bvh_children)[2u * gid + 1u] = right;
+    V(bvh_ranges)[2u * gid] = U32(first);
+    V(bvh_ranges)[2u * gid + 1u] = U32(last);
+    uint up = U32(n - 1);
+    V(bvh_parents)[(left & BVH_PRIM) != 0u ? up + (left & ~BVH_PRIM) : left] = gid;
+    V(bvh_parents)[(right & BVH_PRIM) != 0u ? up + (right & ~BVH_PRIM) : right] = gid;
+    if (gid == 0u) V(bvh_parents)[0] = BVH_NONE;
+}
+#endif
+
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write)
+// The box of triangle `tri` (world space).
+INLINE Box triangle_box(CTX_PARAM uint tri) {
+    Triangle t = load_triangle(CTX_ARG tri);
+    Box b;
+    b.lo = min(t.a, min(t.b, t.c));
+    b.hi = max(t.a, max(t.b, t.c));
+    return b;
+}
+
+// The box of Karras child code `c`: a primitive's triangle box, or an inner node's fitted box.
+INLINE Box bvh_child_box(CTX_PARAM uint c) {
+    if ((c & BVH_PRIM) != 0u) return triangle_box(CTX_ARG V(voxel_tris)[c & ~BVH_PRIM]);
+    Box b;
+    b.lo = V(bvh_fit_boxes)[2u * c].xyz;
+    b.hi = V(bvh_fit_boxes)[2u * c + 1u].xyz;
+    return b;
+}
+#endif
+
+#ifdef KERNEL_bvh_fit
+// ---- Build 4: bottom-up box fit (Karras 2012, 4), one work item per primitive ----------------
+// Each item climbs from its primitive's parent; at every node the first of the two children's
+// items to arrive (atomic counter 0 -> 1) stops, the second one finds both children finished and
+// fits the node. The fence orders a node's box (and cost) before the counter its parent reads.
+// The same pass decides the leaves, the quality pass of this build (bvh_sah = 1): a node of at most
+// bvh_leaf_size triangles becomes a leaf where the surface-area heuristic (MacDonald & Booth 1990;
+// the final step of Karras & Aila 2013) rates testing them all as cheaper than descending,
+// SA(N) * C_i * n <= SA(N) * C_t + cost(L) + cost(R) (costs scaled by the area: cost(N) =
+// SA(N) * expected cost below N; C_t = 1.2, C_i = 1 as Karras & Aila). bvh_sah = 0: every node of at
+// most bvh_leaf_size triangles is a leaf (the plain LBVH). bvh_costs holds 2 floats per inner node,
+// the cost of the tree below it as decided and that of the plain LBVH, so the root's two, divided by
+// its area, are the SAH costs of the tree and of the tree without the quality pass (stats).
+#define BVH_COST_NODE 1.2f
+#define BVH_COST_TRI 1.0f
+
+#ifdef LANG_GLSL
+#define BVH_FENCE() memoryBarrierBuffer()
+#else
+#define BVH_FENCE() mem_fence(CLK_GLOBAL_MEM_FENCE)
+#endif
+
+// Cost of child c as decided (plain = 0) or in the plain LBVH (plain = 1).
+INLINE float bvh_child_cost(CTX_PARAM uint c, uint plain) {
+    if ((c & BVH_PRIM) != 0u) return BVH_COST_TRI * box_area(bvh_child_box(CTX_ARG c));
+    return V(bvh_costs)[2u * c + plain];
+}
+
+INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
+    uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
+    while (node != BVH_NONE) {
+        BVH_FENCE();
+        if (ATOMIC_ADD(V(bvh_arrivals)[node], 1u) == 0u) return;  // the sibling's item fits it
+        BVH_FENCE();
+        uint l = V(bvh_children)[2u * node];
+        uint r = V(bvh_children)[2u * node + 1u];
+        Box b = box_union(bvh_child_box(CTX_ARG l), bvh_child_box(CTX_ARG r));
+        V(bvh_fit_boxes)[2u * node] = make_float4(b.lo.x, b.lo.y, b.lo.z, 0.0f);
+        V(bvh_fit_boxes)[2u * node + 1u] = make_float4(b.hi.x, b.hi.y, b.hi.z, 0.0f);
+        uint count = V(bvh_ranges)[2u * node + 1u] - V(bvh_ranges)[2u * node] + 1u;
+        float area = box_area(b);
+        float split = BVH_COST_NODE * area + bvh_child_cost(CTX_ARG l, 0u) + bvh_child_cost(CTX_ARG r, 0u);
+        float plain_split = BVH_COST_NODE * area + bvh_child_cost(CTX_ARG l, 1u) + bvh_child_cost(CTX_ARG r, 1u);
+        float leaf = BVH_COST_TRI * F32(count) * area;
+        uint small = count <= V(bvh_leaf_size) ? 1u : 0u;
+        uint collapse = small != 0u && (V(bvh_sah) == 0u || leaf <= split) ? 1u : 0u;
+        V(bvh_collapse)[node] = collapse;
+        V(bvh_costs)[2u * node] = collapse != 0u ? leaf : split;
+        V(bvh_costs)[2u * node + 1u] = small != 0u ? leaf : plain_split;
+        node = V(bvh_parents)[node];
+    }
+}
+#endif
+
+#ifdef KERNEL_bvh_keep
+// ---- Build 5: which inner nodes stay nodes: not collapsed, no collapsed ancestor -------------
+// Only nodes of at most bvh_leaf_size triangles collapse, so the climb ends at the first ancestor
+// with more (ranges grow towards the root).
+INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
+    uint keep = V(bvh_collapse)[node] != 0u ? 0u : 1u;
+    uint p = V(bvh_parents)[node];
+    while (keep != 0u && p != BVH_NONE && V(bvh_ranges)[2u * p + 1u] - V(bvh_ranges)[2u * p] < V(bvh_leaf_size)) {
+        if (V(bvh_collapse)[p] != 0u) keep = 0u;
+        p = V(bvh_parents)[p];
+    }
+    V(bvh_keep)[node] = keep;
+}
+#endif
+
+#ifdef KERNEL_bvh_write
+// ---- Build 6: the final nodes, one work item per kept inner node -----------------------------
+// bvh_ids: exclusive scan of bvh_keep (node i is kept iff bvh_ids[i + 1] > bvh_ids[i]; its new id
+// is bvh_ids[i]; the root, if kept, stays 0). A child that is a kept node is linked by its new id;
+// any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris.
+INLINE void bvh_store_node(CTX_PARAM uint id, Box b0, Box b1, uint4 link) {
+    V(bvh_nodes)[3u * id] = make_float4(b0.lo.x, b0.hi.x, b0.lo.y, b0.hi.y);
+    V(bvh_nodes)[3u * id + 1u] = make_float4(b1.lo.x, b1.hi.x, b1.lo.y, b1.hi.y);
+    V(bvh_nodes)[3u * id + 2u] = make_float4(b0.lo.z, b0.hi.z, b1.lo.z, b1.hi.z);
+    V(bvh_links)[id] = link;
+}
+
+INLINE uint4 bvh_child_link(CTX_PARAM uint c) {  // (ref, count, 0, 0) of Karras child c
+    if ((c & BVH_PRIM) != 0u) return make_uint4(c & ~BVH_PRIM, 1u, 0u, 0u);
+    uint id = V(bvh_ids)[c];
+    if (V(bvh_ids)[c + 1u] > id) return make_uint4(id, 0u, 0u, 0u);
+    uint first = V(bvh_ranges)[2u * c];
+    return make_uint4(first, V(bvh_ranges)[2u * c + 1u] - first + 1u, 0u, 0u);
+}
+
+INLINE void bvh_write_kernel(CTX_PARAM uint node) {
+    if (V(bvh_node_count) == 0u) {
+        // No node kept (n <= leaf size): one node, child 0 a leaf of everything, child 1 none.
+        Box b = V(bvh_n) == 1u ? bvh_child_box(CTX_ARG BVH_PRIM) : bvh_child_box(CTX_ARG 0u);
+        bvh_store_node(CTX_ARG 0u, b, b, make_uint4(0u, BVH_NONE, V(bvh_n), 0u));
+        return;
+    }
+    uint id = V(bvh_ids)[node];
+    if (V(bvh_ids)[node + 1u] == id) return;
+    uint l = V(bvh_children)[2u * node];
+    uint r = V(bvh_children)[2u * node + 1u];
+    uint4 a = bvh_child_link(CTX_ARG l);
+    uint4 b = bvh_child_link(CTX_ARG r);
+    bvh_store_node(CTX_ARG id, bvh_child_box(CTX_ARG l), bvh_child_box(CTX_ARG r), make_uint4(a.x, b.x, a.y, b.y));
+}
+#endif
+
+#if defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh_ls)
+// ---- bvh-ls: a Line Space per large leaf ------------------------------------------------------
+// Cells are the child slots, 2 per node (cell = 2 * node + slot): a slot that is a leaf of more
+// than ls_min_count triangles gets a Line Space (ls_ids: exclusive scan of those flags, trace.h's
+// cell_line_space). Its box, the leaf's box with every side at least BVH_LS_MIN_SIDE of its longest
+// (a flat leaf, a wall, still has a cell-local space whose unit faces the float32 patch lookup can
+// tell apart), is the cell the Line Space is built over (grid space) and the traversal looks the
+// ray's chord up in (world space, the same box).
+#define BVH_LS_MIN_SIDE 0.05f
+INLINE Box bvh_ls_box(Box b) {
+    float3 e = b.hi - b.lo;
+    float m = max(e.x, max(e.y, e.z));
+    float3 pad = max(make_float3(BVH_LS_MIN_SIDE * m, BVH_LS_MIN_SIDE * m, BVH_LS_MIN_SIDE * m) - e,
+                     make_float3(0.0f, 0.0f, 0.0f)) * 0.5f;
+    float3 tiny = make_float3(1e-30f, 1e-30f, 1e-30f) + 1e-6f * max(fabs(b.lo), fabs(b.hi));
+    Box padded;
+    padded.lo = b.lo - pad - tiny;
+    padded.hi = b.hi + pad + tiny;
+    return padded;
+}
+
+// The box of child `slot` of node `node` (bvh_nodes layout above).
+INLINE Box bvh_slot_box(CTX_PARAM uint node, uint slot) {
+    float4 xy = V(bvh_nodes)[3u * node + slot];
+    float4 z = V(bvh_nodes)[3u * node + 2u];
+    Box b;
+    b.lo = make_float3(xy.x, xy.z, slot == 0u ? z.x : z.z);
+    b.hi = make_float3(xy.y, xy.w, slot == 0u ? z.y : z.w);
+    return b;
+}
+#endif
+
+#ifdef KERNEL_bvh_ls_flags
+INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
+    uint4 link = V(bvh_links)[cell >> 1];
+    uint count = (cell & 1u) == 0u ? link.z : link.w;
+    V(ls_flags)[cell] = count > V(ls_min_count) ? 1u : 0u;
+}
+#endif
+
+#ifdef KERNEL_bvh_ls_cells
+INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
+    uint c = V(ls_ids)[cell];
+    if (V(ls_ids)[cell + 1u] == c) return;
+    uint4 link = V(bvh_links)[cell >> 1];
+    uint slot = cell & 1u;
+    uint first = slot == 0u ? link.x : link.y;
+    uint count = slot == 0u ? link.z : link.w;
+    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG cell >> 1, slot));
+    float3 lo = to_grid(CTX_ARG b.lo);
+    float3 hi = to_grid(CTX_ARG b.hi);
+    V(ls_cell_boxes)[2u * c] = make_float4(lo.x, lo.y, lo.z, 0.0f);
+    V(ls_cell_boxes)[2u * c + 1u] = make_float4(hi.x, hi.y, hi.z, 0.0f);
+    V(ls_cell_ranges)[2u * c] = first;
+    V(ls_cell_ranges)[2u * c + 1u] = first + count;
+}
+#endif
+
+#if defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
+// ---- Traversal ----------------------------------------------------------------------------------
+// World space. The slab test of both children of a node at once; a zero direction component gets
+// 1/d = FLT_MAX instead of infinity (0 * inf would be NaN for an origin in a slab's plane; the
+// build's boxes are exact float min/max, so only a ray in a triangle's own plane meets a plane
+// exactly, and then it grazes). t_far is widened by 2 gamma(3) (Ize 2013, pbrt's robust slab test),
+// so float rounding never loses a box the ray touches.
+STRUCT(BvhRay) { float3 o; float3 inv; };
+
+INLINE float bvh_rcp(float x) {
+    if (x == 0.0f) return BVH_FLT_MAX;
+    float r = 1.0f / x;
+    return clamp(r, -BVH_FLT_MAX, BVH_FLT_MAX);
+}
+
+// (t_near, t_far) of box [lo, hi] within [t0, t1]; t_near > t_far: missed.
+INLINE float2 bvh_slab(BvhRay r, float3 lo, float3 hi, float t0, float t1) {
+    float3 a = (lo - r.o) * r.inv;
+    float3 b = (hi - r.o) * r.inv;
+    float3 n = min(a, b);
+    float3 f = max(a, b);
+    float tn = max(max(n.x, n.y), max(n.z, t0));
+    float tf = min(min(f.x, f.y), f.z) * 1.0000007f;
+    return make_float2(tn, min(tf, t1));
+}
+
+// The candidates of a leaf: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
+// Space, the shaft of the ray's chord through the leaf's (padded) box: the ray in the box's own
+// unit-cube space (an affine map keeps t) is given to octree_ls.h's ols_leaf_shaft as a leaf at
+// cell (0, 0, 0), the lookup the octree leaves make (Algorithm 3).
+#ifdef LEAF_LINE_SPACE
+INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf, int3 cell, float2 t_leaf);  // octree_ls.h
+#endif
+
+INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint node, uint slot, uint first, uint count, float2 span) {
+    Candidates c = plain_list(first, first + count);
+#ifdef LEAF_LINE_SPACE
+    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
+    float3 scale = b.hi - b.lo;
+    GridRay g;
+    g.o = (ray.o - b.lo) / scale;
+    g.d = ray.d / scale;
+    g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
+    g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
+    c = ols_leaf_shaft(CTX_ARG c, g, 2u * node + slot, make_int3(0, 0, 0), span);
+#endif
+    return test_candidates(CTX_ARG tr, c);
+}
+
+// Stack-based walk, near child first. A node visit (one `iterations` step) tests both children's
+// boxes against [tmin, the closest hit so far]; leaf children are tested at once (nearer first),
+// of two inner children the nearer is entered and the farther pushed with its entry t, and a
+// popped node whose entry lies past the closest hit by then is dropped. QUERY_ANY: the first hit
+// ends the walk (trace_done).
+INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
+    Trace tr = trace_start(ray);
+    BvhRay br;
+    br.o = ray.o;
+    br.inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    uint stack[BVH_STACK];
+    float stack_t[BVH_STACK];
+    int sp = 0;
+    uint node = 0u;
+    for (;;) {
+        tr.iterations += 1u;
+        float4 n0 = V(bvh_nodes)[3u * node];
+        float4 n1 = V(bvh_nodes)[3u * node + 1u];
+        float4 nz = V(bvh_nodes)[3u * node + 2u];
+        uint4 link = V(bvh_links)[node];
+        float2 s0 = bvh_slab(br, make_float3(n0.x, n0.z, nz.x), make_float3(n0.y, n0.w, nz.y), tr.tmin, tr.best.t);
+        float2 s1 = bvh_slab(br, make_float3(n1.x, n1.z, nz.z), make_float3(n1.y, n1.w, nz.w), tr.tmin, tr.best.t);
+        int hit0 = s0.x <= s0.y ? 1 : 0;
+        int hit1 = s1.x <= s1.y ? 1 : 0;
+        // Slot order: nearer child first.
+        uint first_slot = (hit1 != 0 && (hit0 == 0 || s1.x < s0.x)) ? 1u : 0u;
+        uint next = BVH_NONE;
+        float next_t = 0.0f;
+        for (uint k = 0u; k < 2u; ++k) {
+            uint slot = k == 0u ? first_slot : 1u - first_slot;
+            int hit = slot == 0u ? hit0 : hit1;
+            float2 s = slot == 0u ? s0 : s1;
+            uint ref = slot == 0u ? link.x : link.y;
+            uint count = slot == 0u ? link.z : link.w;
+            if (hit == 0 || s.x > tr.best.t || ref == BVH_NONE) continue;
+            if (count > 0u) {
+                tr = bvh_test_leaf(CTX_ARG tr, ray, node, slot, ref, count, s);
+#ifdef QUERY_ANY
+                if (tr.best.prim >= 0) break;
+#endif
+            } else if (next == BVH_NONE) {
+                next = ref;
+                next_t = s.x;
+            } else if (sp < BVH_STACK) {
+                stack[sp] = ref;
+                stack_t[sp] = s.x;
+                sp += 1;
+            }
+        }
+#ifdef QUERY_ANY
+        if (tr.best.prim >= 0) break;
+#endif
+        if (next != BVH_NONE) {
+            node = next;
+            continue;
+        }
+        // Pop the nearest pending node that can still hold a closer hit.
+        node = BVH_NONE;
+        while (sp > 0) {
+            sp -= 1;
+            if (stack_t[sp] <= tr.best.t) { node = stack[sp]; break; }
+        }
+        if (node == BVH_NONE) break;
+    }
+    return trace_finish(CTX_ARG tr, id);
+}
+
+INLINE void trace_bvh_kernel(CTX_PARAM uint ray) {
+    store_hit(CTX_ARG ray, trace_bvh(CTX_ARG load_ray(CTX_ARG ray), ray));
+}
+#endif  // traversal
