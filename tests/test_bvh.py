@@ -209,3 +209,25 @@ def test_work_counters_count_node_visits_and_tests(device):
 def test_leaf_size_is_checked():
     with pytest.raises(ValueError, match="leaf_size must be one of 1, 2, 4"):
         bvh.check_leaf_size(3)
+
+
+def test_leaf_size_key_and_flag(tmp_path):
+    """The scenario key: checked with the allowed values named, crossed only into the BVH cases,
+    part of their key and record (the other structures' keys stay as they were)."""
+    from lsbench.inputs.scenario import ScenarioError, load_scenario
+    from lsbench.running.execute import new_record
+
+    path = tmp_path / "s.toml"
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "bvh", "bvh-ls"]\n'
+                    'backends = ["opencl"]\nresolutions = [8]\nleaf_size = [0, 4]\n')
+    cases = load_scenario(str(path)).cases
+    keys = sorted(c.key for c in cases)
+    assert len(cases) == 5 and sum(k.endswith("|l4") for k in keys) == 2
+    assert any(k.endswith("|bvh|opencl|r8|n0|k0|l8") for k in keys)  # 0: the default, as built
+    assert any(k.endswith("|bvh-ls|opencl|r8|n2|k0|l16") for k in keys)
+    assert [k for k in keys if "|grid|" in k] == ["cornell|primary@64x64|grid|opencl|r8|n0|k0"]
+    bvh_case = next(c for c in cases if c.structure == "bvh" and c.leaf_size == 4)
+    assert new_record(bvh_case, load_scenario(str(path)).settings).leaf_size == 4
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["bvh"]\nresolutions = [8]\nleaf_size = 3\n')
+    with pytest.raises(ScenarioError, match=r"leaf_size.* 3 is not 0 \(the structure's default\) or one of 1, 2, 4"):
+        load_scenario(str(path))

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from . import bvh, esvo, grid, grid_ls, svo
+from . import bvh_ls as bvh_ls_module
 from .bvh_ls import bvh_ls
 from .octree_ls import esvo_ls, svo_ls
 
@@ -20,6 +21,7 @@ class StructureInfo:
     cubic_power_of_two: bool  # octrees: a cubic power-of-two resolution over the bounding cube
     line_space: bool  # takes ls_n / ls_min_candidates
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
+    leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none
 
 
 CATALOGUE: tuple[StructureInfo, ...] = (
@@ -29,8 +31,10 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("grid-ls", grid_ls, False, True, "grid with a Line Space per non-empty voxel (3.3.3, Alg. 2)"),
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
-    StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, SAH leaf collapse (Fig. 4c baseline)"),
-    StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)"),
+    StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, SAH leaf collapse (Fig. 4c baseline)",
+                  bvh.DEFAULT_LEAF_SIZE),
+    StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
+                  bvh_ls_module.DEFAULT_LEAF_SIZE),
 )
 STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
 
