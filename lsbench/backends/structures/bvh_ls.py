@@ -52,7 +52,7 @@ class LineSpaceBVH:
         n = linespace.check_n(params.ls_n or 1)
         k = linespace.check_min_candidates(params.ls_min_candidates)
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
-                                       sah=params.options.get("bvh_quality", "none") == "sah")
+                                       quality=params.options.get("bvh_quality", "none"))
         slots = 2 * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)
         made: list[DeviceBuffer] = []

@@ -1,7 +1,7 @@
 // `bvh` and `bvh-ls`: a binary BVH built on the device (a linear BVH: Morton codes of the
 // triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
 // construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
-// collapse), and its stack traversal (Aila & Laine 2009, "Understanding the efficiency of ray
+// collapse, treelet restructuring after Karras & Aila 2013), and its stack traversal (Aila & Laine 2009, "Understanding the efficiency of ray
 // traversal on GPUs": both children's boxes in the parent, near child first). bvh-ls gives the
 // large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
 // Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
@@ -156,7 +156,7 @@ INLINE void bvh_emit_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write)
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure)
 // The box of triangle `tri` (world space).
 INLINE Box triangle_box(CTX_PARAM uint tri) {
     Triangle t = load_triangle(CTX_ARG tri);
@@ -176,19 +176,7 @@ INLINE Box bvh_child_box(CTX_PARAM uint c) {
 }
 #endif
 
-#ifdef KERNEL_bvh_fit
-// ---- Build 4: bottom-up box fit (Karras 2012, 4), one work item per primitive ----------------
-// Each item climbs from its primitive's parent; at every node the first of the two children's
-// items to arrive (atomic counter 0 -> 1) stops, the second one finds both children finished and
-// fits the node. The fence orders a node's box (and cost) before the counter its parent reads.
-// The same pass decides the leaves, the quality pass of this build (bvh_sah = 1): a node of at most
-// bvh_leaf_size triangles becomes a leaf where the surface-area heuristic (MacDonald & Booth 1990;
-// the final step of Karras & Aila 2013) rates testing them all as cheaper than descending,
-// SA(N) * C_i * n <= SA(N) * C_t + cost(L) + cost(R) (costs scaled by the area: cost(N) =
-// SA(N) * expected cost below N; C_t = 1.2, C_i = 1 as Karras & Aila). bvh_sah = 0: every node of at
-// most bvh_leaf_size triangles is a leaf (the plain LBVH). bvh_costs holds 2 floats per inner node,
-// the cost of the tree below it as decided and that of the plain LBVH, so the root's two, divided by
-// its area, are the SAH costs of the tree and of the tree without the quality pass (stats).
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_restructure)
 #define BVH_COST_NODE 1.2f
 #define BVH_COST_TRI 1.0f
 
@@ -204,6 +192,30 @@ INLINE float bvh_child_cost(CTX_PARAM uint c, uint plain) {
     return V(bvh_costs)[2u * c + plain];
 }
 
+// Triangles below child code c.
+INLINE uint bvh_child_count(CTX_PARAM uint c) {
+    return (c & BVH_PRIM) != 0u ? 1u : V(bvh_counts)[c];
+}
+
+// Where the parent of child code c is kept (inner nodes first, then the primitives).
+INLINE uint bvh_parent_slot(CTX_PARAM uint c) {
+    return (c & BVH_PRIM) != 0u ? V(bvh_n) - 1u + (c & ~BVH_PRIM) : c;
+}
+#endif
+
+#ifdef KERNEL_bvh_fit
+// ---- Build 4: bottom-up box fit (Karras 2012, 4), one work item per primitive ----------------
+// Each item climbs from its primitive's parent; at every node the first of the two children's
+// items to arrive (atomic counter 0 -> 1) stops, the second one finds both children finished and
+// fits the node. The fence orders a node's box (and cost) before the counter its parent reads.
+// The same pass decides the leaves, the quality pass of this build (bvh_sah = 1): a node of at most
+// bvh_leaf_size triangles becomes a leaf where the surface-area heuristic (MacDonald & Booth 1990;
+// the final step of Karras & Aila 2013) rates testing them all as cheaper than descending,
+// SA(N) * C_i * n <= SA(N) * C_t + cost(L) + cost(R) (costs scaled by the area: cost(N) =
+// SA(N) * expected cost below N; C_t = 1.2, C_i = 1 as Karras & Aila). bvh_sah = 0: every node of at
+// most bvh_leaf_size triangles is a leaf (the plain LBVH). bvh_costs holds 2 floats per inner node,
+// the cost of the tree below it as decided and that of the plain LBVH, so the root's two, divided by
+// its area, are the SAH costs of the tree and of the tree without the quality pass (stats).
 INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
     uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
     while (node != BVH_NONE) {
@@ -223,6 +235,7 @@ INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
         uint small = count <= V(bvh_leaf_size) ? 1u : 0u;
         uint collapse = small != 0u && (V(bvh_sah) == 0u || leaf <= split) ? 1u : 0u;
         V(bvh_collapse)[node] = collapse;
+        V(bvh_counts)[node] = count;
         V(bvh_costs)[2u * node] = collapse != 0u ? leaf : split;
         V(bvh_costs)[2u * node + 1u] = small != 0u ? leaf : plain_split;
         node = V(bvh_parents)[node];
@@ -230,14 +243,140 @@ INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
 }
 #endif
 
+#ifdef KERNEL_bvh_restructure
+// ---- Build 5: treelet restructuring (Karras & Aila 2013, "Fast parallel construction of high-
+// quality bounding volume hierarchies"), one work item per primitive climbing as in the fit -----
+// At every node N of more than bvh_leaf_size triangles, once both its subtrees are done (an
+// arrival counter, as the fit): grow a treelet of up to BVH_TREELET leaves from N's children,
+// always opening the leaf of largest area that is itself such a node; find the topology of those
+// leaves with the least SAH cost by dynamic programming over their subsets (each subset: the best
+// of its 2-part splits); if it is cheaper than the treelet as it is, rebuild the treelet in place
+// with its own inner nodes (boxes, costs, counts, parents). Nodes of at most bvh_leaf_size
+// triangles are never opened nor made, so every leaf the compaction makes is still a contiguous
+// range of voxel_tris. 5 leaves (Karras & Aila use 7): 3^5 = 243 split tests per node keeps a
+// climb to the root inside llvmpipe's loop budget; loops cut short count into bvh_cut.
+#define BVH_TREELET 5
+#define BVH_SUBSETS 32
+
+INLINE Box bvh_subset_box(Box b0, Box b1, Box b2, Box b3, Box b4, uint s) {
+    Box u;
+    u.lo = make_float3(BVH_FLT_MAX, BVH_FLT_MAX, BVH_FLT_MAX);
+    u.hi = make_float3(-BVH_FLT_MAX, -BVH_FLT_MAX, -BVH_FLT_MAX);
+    if ((s & 1u) != 0u) u = box_union(u, b0);
+    if ((s & 2u) != 0u) u = box_union(u, b1);
+    if ((s & 4u) != 0u) u = box_union(u, b2);
+    if ((s & 8u) != 0u) u = box_union(u, b3);
+    if ((s & 16u) != 0u) u = box_union(u, b4);
+    return u;
+}
+
+INLINE void bvh_restructure(CTX_PARAM uint root) {
+    uint leaf_size = V(bvh_leaf_size);
+    uint leaves[BVH_TREELET];
+    uint inner[BVH_TREELET];
+    leaves[0] = V(bvh_children)[2u * root];
+    leaves[1] = V(bvh_children)[2u * root + 1u];
+    inner[0] = root;
+    uint m = 2u;
+    while (m < U32(BVH_TREELET)) {
+        int best = -1;
+        float best_area = -1.0f;
+        for (uint k = 0u; k < m; ++k) {
+            uint c = leaves[k];
+            if ((c & BVH_PRIM) != 0u || V(bvh_counts)[c] <= leaf_size) continue;
+            float a = box_area(bvh_child_box(CTX_ARG c));
+            if (a > best_area) { best_area = a; best = I32(k); }
+        }
+        if (best < 0) break;
+        uint opened = leaves[best];
+        inner[m - 1u] = opened;
+        leaves[best] = V(bvh_children)[2u * opened];
+        leaves[m] = V(bvh_children)[2u * opened + 1u];
+        m += 1u;
+    }
+    if (m < 3u) return;  // two leaves have one topology
+    Box b0 = bvh_child_box(CTX_ARG leaves[0]), b1 = bvh_child_box(CTX_ARG leaves[1]), b2 = bvh_child_box(CTX_ARG leaves[2]);
+    Box b3 = m > 3u ? bvh_child_box(CTX_ARG leaves[3]) : b0;
+    Box b4 = m > 4u ? bvh_child_box(CTX_ARG leaves[4]) : b0;
+    float cost[BVH_SUBSETS];
+    uint split[BVH_SUBSETS];
+    uint full = (1u << m) - 1u;
+    for (uint s = 1u; s <= full; ++s) {
+        split[s] = 0u;
+        if ((s & (s - 1u)) == 0u) {  // one leaf: its own cost
+            uint k = U32(BVH_CLZ(1u)) - U32(BVH_CLZ(s));
+            cost[s] = bvh_child_cost(CTX_ARG leaves[k], 0u);
+            continue;
+        }
+        float best = BVH_FLT_MAX;
+        for (uint p = (s - 1u) & s; p != 0u; p = (p - 1u) & s) {
+            float c = cost[p] + cost[s ^ p];
+            if (c < best) { best = c; split[s] = p; }
+        }
+        cost[s] = BVH_COST_NODE * box_area(bvh_subset_box(b0, b1, b2, b3, b4, s)) + best;
+    }
+    if (!(cost[full] < V(bvh_costs)[2u * root] * 0.9999f)) return;  // no better topology
+    // Rebuild top-down from the root, handing out the treelet's inner nodes in order.
+    uint todo_set[BVH_TREELET];
+    uint todo_node[BVH_TREELET];
+    int top = 0;
+    todo_set[0] = full;
+    todo_node[0] = root;
+    uint next_inner = 1u;
+    while (top >= 0) {
+        uint s = todo_set[top];
+        uint id = todo_node[top];
+        top -= 1;
+        uint parts[2];
+        parts[0] = split[s];
+        parts[1] = s ^ split[s];
+        uint count = 0u;
+        for (uint h = 0u; h < 2u; ++h) {
+            uint q = parts[h];
+            uint code;
+            if ((q & (q - 1u)) == 0u) {
+                code = leaves[U32(BVH_CLZ(1u)) - U32(BVH_CLZ(q))];
+            } else {
+                code = inner[next_inner];
+                next_inner += 1u;
+                top += 1;
+                todo_set[top] = q;
+                todo_node[top] = code;
+            }
+            V(bvh_children)[2u * id + h] = code;
+            V(bvh_parents)[bvh_parent_slot(CTX_ARG code)] = id;
+        }
+        for (uint k = 0u; k < m; ++k)
+            if (((s >> k) & 1u) != 0u) count += bvh_child_count(CTX_ARG leaves[k]);
+        Box b = bvh_subset_box(b0, b1, b2, b3, b4, s);
+        V(bvh_fit_boxes)[2u * id] = make_float4(b.lo.x, b.lo.y, b.lo.z, 0.0f);
+        V(bvh_fit_boxes)[2u * id + 1u] = make_float4(b.hi.x, b.hi.y, b.hi.z, 0.0f);
+        V(bvh_costs)[2u * id] = cost[s];
+        V(bvh_counts)[id] = count;
+    }
+}
+
+INLINE void bvh_restructure_kernel(CTX_PARAM uint prim) {
+    uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
+    while (node != BVH_NONE) {
+        BVH_FENCE();
+        if (ATOMIC_ADD(V(bvh_arrivals)[node], 1u) == 0u) return;
+        BVH_FENCE();
+        if (V(bvh_counts)[node] > V(bvh_leaf_size)) bvh_restructure(CTX_ARG node);
+        node = V(bvh_parents)[node];
+    }
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // scene.h: the driver cut loops
+}
+#endif
+
 #ifdef KERNEL_bvh_keep
-// ---- Build 5: which inner nodes stay nodes: not collapsed, no collapsed ancestor -------------
+// ---- Build 6: which inner nodes stay nodes: not collapsed, no collapsed ancestor -------------
 // Only nodes of at most bvh_leaf_size triangles collapse, so the climb ends at the first ancestor
-// with more (ranges grow towards the root).
+// with more (counts grow towards the root).
 INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
     uint keep = V(bvh_collapse)[node] != 0u ? 0u : 1u;
     uint p = V(bvh_parents)[node];
-    while (keep != 0u && p != BVH_NONE && V(bvh_ranges)[2u * p + 1u] - V(bvh_ranges)[2u * p] < V(bvh_leaf_size)) {
+    while (keep != 0u && p != BVH_NONE && V(bvh_counts)[p] <= V(bvh_leaf_size)) {
         if (V(bvh_collapse)[p] != 0u) keep = 0u;
         p = V(bvh_parents)[p];
     }
@@ -246,7 +385,7 @@ INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
 #endif
 
 #ifdef KERNEL_bvh_write
-// ---- Build 6: the final nodes, one work item per kept inner node -----------------------------
+// ---- Build 7: the final nodes, one work item per kept inner node -----------------------------
 // bvh_ids: exclusive scan of bvh_keep (node i is kept iff bvh_ids[i + 1] > bvh_ids[i]; its new id
 // is bvh_ids[i]; the root, if kept, stays 0). A child that is a kept node is linked by its new id;
 // any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris.
