@@ -47,9 +47,11 @@ def check_tree(built, scene, leaf_size):
     seen_nodes = np.zeros(len(nodes), np.int64)
     covered = np.zeros(n, np.int64)
     leaf_sizes = []
-    stack = [0]
+    stack = [(0, 0)]
+    deepest = 0
     while stack:
-        node = stack.pop()
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
         seen_nodes[node] += 1
         for slot in (0, 1):
             ref, count = int(links[node, slot]), int(links[node, 2 + slot])
@@ -63,7 +65,7 @@ def check_tree(built, scene, leaf_size):
                         continue
                     clo, chi = _child_box(nodes, ref, s)
                     assert np.all(lo <= clo) and np.all(chi <= hi), (node, slot, ref)
-                stack.append(ref)
+                stack.append((ref, depth + 1))
             else:
                 assert count <= leaf_size
                 leaf_sizes.append(count)
@@ -75,6 +77,7 @@ def check_tree(built, scene, leaf_size):
     assert np.all(seen_nodes == 1), "a node is unreachable or reached twice (buffers sized exactly)"
     assert np.all(covered == 1), f"{np.count_nonzero(covered != 1)} triangles not in exactly one leaf"
     assert built.stats["leaves"] == len(leaf_sizes)
+    assert built.stats["depth"] == deepest  # the traversal's stack is sized from it
     return np.array(leaf_sizes)
 
 

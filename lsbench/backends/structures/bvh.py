@@ -85,8 +85,9 @@ KEEP = KernelSpec("bvh_keep", BVH_HEADERS_NO_SCENE, "bvh_keep_kernel",
 WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
                    SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
                                     Buf("bvh_ranges", "uint", "r"), Buf("bvh_ids", "uint", "r"),
-                                    Buf("bvh_fit_boxes", "float4", "r"), Buf("bvh_nodes", "float4", "w"),
-                                    Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
+                                    Buf("bvh_parents", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
+                                    Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w"),
+                                    Buf("bvh_depth", "uint", "rw")), BVH_UNIFORMS)
 BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WRITE)
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
@@ -201,9 +202,13 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         made.append(nodes)
         links = device.alloc("bvh_links", 16 * max(n_nodes, 1), zero=False)
         made.append(links)
+        depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
+        temps.append(depth_buf)
         device.dispatch(WRITE, max(inner, 1) if n_nodes else 1,
                         dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_ids=ids,
-                             bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links), dict(u, bvh_node_count=n_nodes))
+                             bvh_parents=parents, bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links,
+                             bvh_depth=depth_buf), dict(u, bvh_node_count=n_nodes))
+        stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
         device.finish()
     except BaseException:
         for b in made:
@@ -228,4 +233,10 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     leaf_size = check_leaf_size(params.leaf_size)
     buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
                                quality=params.options.get("bvh_quality", "treelet"))
-    return BuildResult(buffers, geometry.uniforms(), TRACE_BVH, stats)
+    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats), stats)
+
+
+def traversal(spec: KernelSpec, stats: dict) -> KernelSpec:
+    """The trace kernel with its stack sized to the tree: one entry per level of the deepest path
+    (the treelet restructuring may make a tree deeper than the Karras hierarchy's ~64 levels)."""
+    return spec.with_defines(BVH_STACK=stats["depth"] + 1)

@@ -21,7 +21,9 @@
 
 #define BVH_NONE 0xffffffffu
 #define BVH_PRIM 0x80000000u  // Karras child code: a primitive (sorted position) instead of an inner node
-#define BVH_STACK 64          // traversal stack: deeper than any Karras tree of 30-bit codes + 32-bit ids
+#ifndef BVH_STACK
+#define BVH_STACK 64  // the traversal's stack: the build compiles it with the tree's depth (bvh.py)
+#endif
 #define BVH_FLT_MAX 3.4028235e38f
 
 #ifdef LANG_GLSL
@@ -413,6 +415,11 @@ INLINE void bvh_write_kernel(CTX_PARAM uint node) {
     }
     uint id = V(bvh_ids)[node];
     if (V(bvh_ids)[node + 1u] == id) return;
+    // The node's depth (kept ancestors: every ancestor of a kept node is kept), for the traversal's
+    // stack size; the deepest is ~bvh_depth[0] (the atomics have a min, not a max).
+    uint depth = 0u;
+    for (uint p = V(bvh_parents)[node]; p != BVH_NONE; p = V(bvh_parents)[p]) depth += 1u;
+    ATOMIC_MIN(V(bvh_depth)[0], ~depth);
     uint l = V(bvh_children)[2u * node];
     uint r = V(bvh_children)[2u * node + 1u];
     uint4 a = bvh_child_link(CTX_ARG l);
@@ -571,7 +578,7 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
             } else if (next == BVH_NONE) {
                 next = ref;
                 next_t = s.x;
-            } else if (sp < BVH_STACK) {
+            } else {  // sp < BVH_STACK: one entry per level of the path at most
                 stack[sp] = ref;
                 stack_t[sp] = s.x;
                 sp += 1;
