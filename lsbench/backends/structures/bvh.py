@@ -16,12 +16,16 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    The SAH cost of the tree after each stage is in the stats: `sah_cost_plain` (the plain LBVH:
    every node of at most leaf_size triangles a leaf), `sah_cost_collapse` (SAH leaves) and
    `sah_cost` (as built), so every build measures the gain; the device time of each kernel is in
-   `build_kernel_seconds` (OpenCL). Sponza (262k triangles, leaf size 8, PoCL on 2 cores): SAH cost
-   177 -> 164 -> 107, node visits per primary ray 141 -> 74, +40 % rays/s, for 0.15 s of
-   restructuring in a 0.6 s build. options["bvh_quality"] (QUALITIES) stops after a stage.
-6. Compaction: the inner nodes that stay nodes are flagged, scanned, and written in the 64-byte
-   node layout of Aila & Laine 2009 (bvh.h: both children's boxes in the parent, 48 bytes in
-   bvh_nodes, links and leaf ranges in bvh_links, 16 bytes), into buffers of exactly that size.
+   `build_kernel_seconds` (OpenCL). Sponza (262k triangles, leaf size 8, PoCL on 2 shared cores):
+   SAH cost 177 -> 164 -> 102, binary node visits per primary ray 141 -> 69, about +40 % rays/s,
+   for 0.34 s of restructuring (6 rounds; 3 rounds: SAH 107 in 0.15 s). options["bvh_quality"]
+   (QUALITIES) stops after a stage.
+6. Compaction: the inner nodes that stay nodes are flagged (not collapsed into a leaf), those at
+   an even depth head the 4-wide nodes (every odd level is dropped: a node takes its children's
+   children), which are scanned and written in the layout of bvh.h, 128 bytes per node (all four
+   children's boxes side by side in bvh_nodes, 96 bytes; refs and leaf counts in bvh_links, 32),
+   into buffers of exactly that size. Sponza: 4-wide nodes take 40 node visits per primary ray
+   where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
 
 Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
 (32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
@@ -30,8 +34,8 @@ inner node).
 
 Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
 scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
-per-buffer limit at allocation (llvmpipe 128 MiB: 2.8 M nodes of 48 bytes, ~30 M triangles for the
-sort buffers)."""
+per-buffer limit at allocation (llvmpipe 128 MiB: 1.4 M 4-wide nodes of 96 bytes, ~30 M triangles
+for the sort buffers); the traversal's leaf entries address a slot as 4 * node + slot in 31 bits."""
 from __future__ import annotations
 
 import numpy as np
@@ -48,14 +52,15 @@ SORT_UNIFORMS = BVH_UNIFORMS + (Uniform("sort_shift", "uint"), Uniform("sort_chu
                                 Uniform("sort_chunks", "uint"))
 SORT_CHUNK = 256  # keys per work item of the sort (a loop of 256 stays far inside llvmpipe's budget)
 SORT_BITS, SORT_DIGITS, MORTON_BITS = 5, 32, 30  # must match shaders/common/bvh.h
-NODE_BYTES = 64  # bvh_nodes 48 + bvh_links 16 (shaders/common/bvh.h)
+NODE_BYTES = 128  # a 4-wide node: bvh_nodes 96 + bvh_links 32 (shaders/common/bvh.h)
+WIDTH = 4
 LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
 DEFAULT_LEAF_SIZE = 8
 # The quality pass (options["bvh_quality"]): "none" (the plain LBVH: every subtree of at most
 # leaf_size triangles one leaf), "sah" (the SAH decides those leaves), "treelet" (that, then
 # TREELET_ROUNDS rounds of treelet restructuring, Karras & Aila 2013; the default).
 QUALITIES = ("none", "sah", "treelet")
-TREELET_ROUNDS = 3
+TREELET_ROUNDS = 6
 MAX_TRIANGLES = 2**31 - 1
 
 MORTON = KernelSpec("bvh_morton", BVH_HEADERS, "bvh_morton_kernel",
@@ -82,13 +87,15 @@ RESTRUCTURE = KernelSpec("bvh_restructure", BVH_HEADERS, "bvh_restructure_kernel
 KEEP = KernelSpec("bvh_keep", BVH_HEADERS_NO_SCENE, "bvh_keep_kernel",
                   (Buf("bvh_counts", "uint", "r"), Buf("bvh_parents", "uint", "r"), Buf("bvh_collapse", "uint", "r"),
                    Buf("bvh_keep", "uint", "w")), BVH_UNIFORMS)
+WIDE_FLAGS = KernelSpec("bvh_wide_flags", BVH_HEADERS_NO_SCENE, "bvh_wide_flags_kernel",
+                        (Buf("bvh_keep", "uint", "r"), Buf("bvh_parents", "uint", "r"),
+                         Buf("bvh_wide_flags", "uint", "w"), Buf("bvh_depth", "uint", "rw")), BVH_UNIFORMS)
 WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
                    SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
-                                    Buf("bvh_ranges", "uint", "r"), Buf("bvh_ids", "uint", "r"),
-                                    Buf("bvh_parents", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
-                                    Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w"),
-                                    Buf("bvh_depth", "uint", "rw")), BVH_UNIFORMS)
-BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WRITE)
+                                    Buf("bvh_ranges", "uint", "r"), Buf("bvh_keep", "uint", "r"),
+                                    Buf("bvh_ids", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
+                                    Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
+BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE)
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
 TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS, GRID_UNIFORMS)
@@ -193,22 +200,28 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             keep = temp("bvh_keep", 4 * inner)
             device.dispatch(KEEP, inner, {"bvh_counts": counts, "bvh_parents": parents, "bvh_collapse": collapse,
                                           "bvh_keep": keep}, u)
-            ids, n_nodes = device.exclusive_scan(keep, inner, "bvh_ids")
+            kept_scan, n_binary = device.exclusive_scan(keep, inner, "bvh_kept")
+            device.release(kept_scan)
+            wide = temp("bvh_wide_flags", 4 * inner)
+            depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
+            temps.append(depth_buf)
+            device.dispatch(WIDE_FLAGS, inner, {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide,
+                                                "bvh_depth": depth_buf}, u)
+            ids, n_nodes = device.exclusive_scan(wide, inner, "bvh_ids")
             temps.append(ids)
+            stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
         else:
             stats["sah_cost"] = stats["sah_cost_plain"] = stats["sah_cost_collapse"] = 0.0
-            ids, n_nodes = temp("bvh_ids", 4, zero=True), 0
-        nodes = device.alloc("bvh_nodes", 48 * max(n_nodes, 1), zero=False)
+            ids, n_nodes, n_binary, stats["depth"] = temp("bvh_ids", 4, zero=True), 0, 0, 0
+            keep = temp("bvh_keep", 4, zero=True)
+        nodes = device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)
         made.append(nodes)
-        links = device.alloc("bvh_links", 16 * max(n_nodes, 1), zero=False)
+        links = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
         made.append(links)
-        depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
-        temps.append(depth_buf)
         device.dispatch(WRITE, max(inner, 1) if n_nodes else 1,
-                        dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_ids=ids,
-                             bvh_parents=parents, bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links,
-                             bvh_depth=depth_buf), dict(u, bvh_node_count=n_nodes))
-        stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
+                        dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_keep=keep,
+                             bvh_ids=ids, bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links),
+                        dict(u, bvh_node_count=n_nodes))
         device.finish()
     except BaseException:
         for b in made:
@@ -218,7 +231,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         temp_bytes = sum(b.nbytes for b in temps)
         for b in temps:
             device.release(b)
-    stats.update({"nodes": max(n_nodes, 1), "leaves": max(n_nodes, 1) + 1 if n_nodes else 1,
+    stats.update({"nodes": max(n_nodes, 1), "binary_nodes": n_binary, "leaves": n_binary + 1,
                   "references": n_tris, "node_bytes": NODE_BYTES, "temp_bytes": int(temp_bytes)})
     return {"bvh_nodes": nodes, "bvh_links": links, "voxel_tris": tris}, stats
 
@@ -237,6 +250,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
 
 
 def traversal(spec: KernelSpec, stats: dict) -> KernelSpec:
-    """The trace kernel with its stack sized to the tree: one entry per level of the deepest path
-    (the treelet restructuring may make a tree deeper than the Karras hierarchy's ~64 levels)."""
-    return spec.with_defines(BVH_STACK=stats["depth"] + 1)
+    """The trace kernel with its stack sized to the tree: 3 entries per 4-wide level of the deepest
+    path plus one node's 4 (bvh.h: trace_bvh; the treelet restructuring may make a tree deeper than
+    the Karras hierarchy's ~64 levels)."""
+    return spec.with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)

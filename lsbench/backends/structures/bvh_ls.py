@@ -53,7 +53,7 @@ class LineSpaceBVH:
         k = linespace.check_min_candidates(params.ls_min_candidates)
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
                                        quality=params.options.get("bvh_quality", "none"))
-        slots = 2 * stats["nodes"]
+        slots = bvh.WIDTH * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)
         made: list[DeviceBuffer] = []
         try:

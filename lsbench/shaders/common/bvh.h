@@ -1,23 +1,25 @@
-// `bvh` and `bvh-ls`: a binary BVH built on the device (a linear BVH: Morton codes of the
+// `bvh` and `bvh-ls`: a BVH built on the device (a linear BVH: Morton codes of the
 // triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
 // construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
-// collapse, treelet restructuring after Karras & Aila 2013), and its stack traversal (Aila & Laine 2009, "Understanding the efficiency of ray
-// traversal on GPUs": both children's boxes in the parent, near child first). bvh-ls gives the
+// collapse, treelet restructuring after Karras & Aila 2013), made 4-wide, and its stack traversal
+// (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency of ray
+// traversal on GPUs", 4 of them as Embree's BVH4; nearest child first). bvh-ls gives the
 // large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
 // Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
 // writer, Line Space cells, traversal) also scene.h, the traversal trace.h (and for bvh-ls
 // linespace.h and octree_ls.h). The host side: backends/structures/bvh.py.
 //
-// Buffers of the finished structure (the layout of a node: 64 bytes in two buffers):
-//   bvh_nodes  3 float4 per node, the boxes of its two children c0, c1 as Aila & Laine store them:
-//              (c0.lo.x, c0.hi.x, c0.lo.y, c0.hi.y), (c1.lo.x, c1.hi.x, c1.lo.y, c1.hi.y),
-//              (c0.lo.z, c0.hi.z, c1.lo.z, c1.hi.z)                                     48 bytes
-//   bvh_links  1 uint4 per node: (ref0, ref1, count0, count1). count 0: the child is the inner
-//              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count)  16 bytes
+// The finished structure is 4-wide (the binary tree with every odd level dropped, builds 7-8): a
+// node holds the boxes of its up to 4 children (slots) side by side, so one float4 operation
+// tests a plane of all four (the layout of Embree's BVH4 and tinybvh's BVH4_GPU), 128 bytes:
+//   bvh_nodes  6 float4 per node: lo.x of slots 0..3, hi.x, lo.y, hi.y, lo.z, hi.z      96 bytes
+//   bvh_links  2 uint4 per node: ref of slots 0..3, then count of slots 0..3. count 0: the slot is
+//              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count);
+//              ref BVH_NONE: an unused slot                                             32 bytes
 //   voxel_tris the triangle ids in Morton order (every leaf a contiguous range of it; trace.h
 //              tests a cell's plain list from this buffer, whatever the structure)
-// Node 0 is the root. A scene of at most leaf-size triangles has one node whose child 0 is a leaf
-// of all of them and child 1 none (ref BVH_NONE, count 0).
+// Node 0 is the root. A scene of at most leaf-size triangles has one node whose slot 0 is a leaf
+// of all of them.
 
 #define BVH_NONE 0xffffffffu
 #define BVH_PRIM 0x80000000u  // Karras child code: a primitive (sorted position) instead of an inner node
@@ -386,51 +388,111 @@ INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
 }
 #endif
 
+#ifdef KERNEL_bvh_wide_flags
+// ---- Build 7: which kept nodes head a 4-wide node: those at an even depth ------------------
+// The binary tree becomes 4-wide by dropping every odd level: a node at an even depth takes its
+// children, and where a child is a kept inner node (odd depth) that child's two children instead
+// (up to 4 slots). Depth: the kept ancestors (every ancestor of a kept node is kept); the deepest
+// is ~bvh_depth[0] (the atomics have a min, not a max), for the traversal's stack size.
+INLINE void bvh_wide_flags_kernel(CTX_PARAM uint node) {
+    uint flag = 0u;
+    if (V(bvh_keep)[node] != 0u) {
+        uint depth = 0u;
+        for (uint p = V(bvh_parents)[node]; p != BVH_NONE; p = V(bvh_parents)[p]) depth += 1u;
+        ATOMIC_MIN(V(bvh_depth)[0], ~depth);
+        flag = (depth & 1u) == 0u ? 1u : 0u;
+    }
+    V(bvh_wide_flags)[node] = flag;
+}
+#endif
+
 #ifdef KERNEL_bvh_write
-// ---- Build 7: the final nodes, one work item per kept inner node -----------------------------
-// bvh_ids: exclusive scan of bvh_keep (node i is kept iff bvh_ids[i + 1] > bvh_ids[i]; its new id
-// is bvh_ids[i]; the root, if kept, stays 0). A child that is a kept node is linked by its new id;
-// any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris.
-INLINE void bvh_store_node(CTX_PARAM uint id, Box b0, Box b1, uint4 link) {
-    V(bvh_nodes)[3u * id] = make_float4(b0.lo.x, b0.hi.x, b0.lo.y, b0.hi.y);
-    V(bvh_nodes)[3u * id + 1u] = make_float4(b1.lo.x, b1.hi.x, b1.lo.y, b1.hi.y);
-    V(bvh_nodes)[3u * id + 2u] = make_float4(b0.lo.z, b0.hi.z, b1.lo.z, b1.hi.z);
-    V(bvh_links)[id] = link;
+// ---- Build 8: the final 4-wide nodes, one work item per inner node ---------------------------
+// bvh_ids: exclusive scan of bvh_wide_flags (node i heads wide node bvh_ids[i] iff
+// bvh_ids[i + 1] > bvh_ids[i]; the root stays 0). A slot holding a wide node links it by its id;
+// any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris;
+// unused slots hold ref BVH_NONE (and a zero box, never tested).
+STRUCT(WideChild) { Box b; uint ref; uint count; };
+
+INLINE WideChild bvh_leaf_or_node(CTX_PARAM uint c) {  // a slot's child: Karras code c, not expanded
+    WideChild w;
+    w.b = bvh_child_box(CTX_ARG c);
+    if ((c & BVH_PRIM) != 0u) {
+        w.ref = c & ~BVH_PRIM;
+        w.count = 1u;
+    } else if (V(bvh_keep)[c] != 0u) {
+        w.ref = V(bvh_ids)[c];  // a kept node at an even depth: a wide node
+        w.count = 0u;
+    } else {
+        w.ref = V(bvh_ranges)[2u * c];
+        w.count = V(bvh_ranges)[2u * c + 1u] - w.ref + 1u;
+    }
+    return w;
 }
 
-INLINE uint4 bvh_child_link(CTX_PARAM uint c) {  // (ref, count, 0, 0) of Karras child c
-    if ((c & BVH_PRIM) != 0u) return make_uint4(c & ~BVH_PRIM, 1u, 0u, 0u);
-    uint id = V(bvh_ids)[c];
-    if (V(bvh_ids)[c + 1u] > id) return make_uint4(id, 0u, 0u, 0u);
-    uint first = V(bvh_ranges)[2u * c];
-    return make_uint4(first, V(bvh_ranges)[2u * c + 1u] - first + 1u, 0u, 0u);
+INLINE uint bvh_opens(CTX_PARAM uint c) {  // 1: child c is a kept inner node whose children take its place
+    return ((c & BVH_PRIM) == 0u && V(bvh_keep)[c] != 0u) ? 1u : 0u;
+}
+
+// Slot k of the wide node headed by `node`.
+INLINE WideChild bvh_wide_child(CTX_PARAM uint node, uint k) {
+    uint c0 = V(bvh_children)[2u * node];
+    uint c1 = V(bvh_children)[2u * node + 1u];
+    uint n0 = 1u + bvh_opens(CTX_ARG c0);
+    uint n1 = 1u + bvh_opens(CTX_ARG c1);
+    uint c = k < n0 ? c0 : c1;
+    uint j = k < n0 ? k : k - n0;
+    WideChild w;
+    if (k >= n0 + n1) {
+        w.b.lo = make_float3(0.0f, 0.0f, 0.0f);
+        w.b.hi = w.b.lo;
+        w.ref = BVH_NONE;
+        w.count = 0u;
+        return w;
+    }
+    if (bvh_opens(CTX_ARG c) != 0u) return bvh_leaf_or_node(CTX_ARG V(bvh_children)[2u * c + j]);
+    return bvh_leaf_or_node(CTX_ARG c);
+}
+
+INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChild c, WideChild d) {
+    V(bvh_nodes)[6u * id] = make_float4(a.b.lo.x, b.b.lo.x, c.b.lo.x, d.b.lo.x);
+    V(bvh_nodes)[6u * id + 1u] = make_float4(a.b.hi.x, b.b.hi.x, c.b.hi.x, d.b.hi.x);
+    V(bvh_nodes)[6u * id + 2u] = make_float4(a.b.lo.y, b.b.lo.y, c.b.lo.y, d.b.lo.y);
+    V(bvh_nodes)[6u * id + 3u] = make_float4(a.b.hi.y, b.b.hi.y, c.b.hi.y, d.b.hi.y);
+    V(bvh_nodes)[6u * id + 4u] = make_float4(a.b.lo.z, b.b.lo.z, c.b.lo.z, d.b.lo.z);
+    V(bvh_nodes)[6u * id + 5u] = make_float4(a.b.hi.z, b.b.hi.z, c.b.hi.z, d.b.hi.z);
+    V(bvh_links)[2u * id] = make_uint4(a.ref, b.ref, c.ref, d.ref);
+    V(bvh_links)[2u * id + 1u] = make_uint4(a.count, b.count, c.count, d.count);
 }
 
 INLINE void bvh_write_kernel(CTX_PARAM uint node) {
     if (V(bvh_node_count) == 0u) {
-        // No node kept (n <= leaf size): one node, child 0 a leaf of everything, child 1 none.
-        Box b = V(bvh_n) == 1u ? bvh_child_box(CTX_ARG BVH_PRIM) : bvh_child_box(CTX_ARG 0u);
-        bvh_store_node(CTX_ARG 0u, b, b, make_uint4(0u, BVH_NONE, V(bvh_n), 0u));
+        // No node kept (n <= leaf size): one node, slot 0 a leaf of everything, the others none.
+        WideChild all;
+        all.b = V(bvh_n) == 1u ? bvh_child_box(CTX_ARG BVH_PRIM) : bvh_child_box(CTX_ARG 0u);
+        all.ref = 0u;
+        all.count = V(bvh_n);
+        WideChild none = all;
+        none.ref = BVH_NONE;
+        none.count = 0u;
+        bvh_store_node(CTX_ARG 0u, all, none, none, none);
         return;
     }
     uint id = V(bvh_ids)[node];
     if (V(bvh_ids)[node + 1u] == id) return;
-    // The node's depth (kept ancestors: every ancestor of a kept node is kept), for the traversal's
-    // stack size; the deepest is ~bvh_depth[0] (the atomics have a min, not a max).
-    uint depth = 0u;
-    for (uint p = V(bvh_parents)[node]; p != BVH_NONE; p = V(bvh_parents)[p]) depth += 1u;
-    ATOMIC_MIN(V(bvh_depth)[0], ~depth);
-    uint l = V(bvh_children)[2u * node];
-    uint r = V(bvh_children)[2u * node + 1u];
-    uint4 a = bvh_child_link(CTX_ARG l);
-    uint4 b = bvh_child_link(CTX_ARG r);
-    bvh_store_node(CTX_ARG id, bvh_child_box(CTX_ARG l), bvh_child_box(CTX_ARG r), make_uint4(a.x, b.x, a.y, b.y));
+    bvh_store_node(CTX_ARG id, bvh_wide_child(CTX_ARG node, 0u), bvh_wide_child(CTX_ARG node, 1u),
+                   bvh_wide_child(CTX_ARG node, 2u), bvh_wide_child(CTX_ARG node, 3u));
 }
+#endif
+
+#if defined(KERNEL_bvh_ls_flags) || defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
+INLINE uint comp4u(uint4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
+INLINE float comp4(float4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
 #endif
 
 #if defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh_ls)
 // ---- bvh-ls: a Line Space per large leaf ------------------------------------------------------
-// Cells are the child slots, 2 per node (cell = 2 * node + slot): a slot that is a leaf of more
+// Cells are the child slots, 4 per node (cell = 4 * node + slot): a slot that is a leaf of more
 // than ls_min_count triangles gets a Line Space (ls_ids: exclusive scan of those flags, trace.h's
 // cell_line_space). Its box, the leaf's box with every side at least BVH_LS_MIN_SIDE of its longest
 // (a flat leaf, a wall, still has a cell-local space whose unit faces the float32 patch lookup can
@@ -449,21 +511,20 @@ INLINE Box bvh_ls_box(Box b) {
     return padded;
 }
 
-// The box of child `slot` of node `node` (bvh_nodes layout above).
+// The box of slot `slot` of node `node` (bvh_nodes layout above).
 INLINE Box bvh_slot_box(CTX_PARAM uint node, uint slot) {
-    float4 xy = V(bvh_nodes)[3u * node + slot];
-    float4 z = V(bvh_nodes)[3u * node + 2u];
     Box b;
-    b.lo = make_float3(xy.x, xy.z, slot == 0u ? z.x : z.z);
-    b.hi = make_float3(xy.y, xy.w, slot == 0u ? z.y : z.w);
+    b.lo = make_float3(comp4(V(bvh_nodes)[6u * node], slot), comp4(V(bvh_nodes)[6u * node + 2u], slot),
+                       comp4(V(bvh_nodes)[6u * node + 4u], slot));
+    b.hi = make_float3(comp4(V(bvh_nodes)[6u * node + 1u], slot), comp4(V(bvh_nodes)[6u * node + 3u], slot),
+                       comp4(V(bvh_nodes)[6u * node + 5u], slot));
     return b;
 }
 #endif
 
 #ifdef KERNEL_bvh_ls_flags
 INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
-    uint4 link = V(bvh_links)[cell >> 1];
-    uint count = (cell & 1u) == 0u ? link.z : link.w;
+    uint count = comp4u(V(bvh_links)[2u * (cell >> 2) + 1u], cell & 3u);
     V(ls_flags)[cell] = count > V(ls_min_count) ? 1u : 0u;
 }
 #endif
@@ -472,11 +533,11 @@ INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
 INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
     uint c = V(ls_ids)[cell];
     if (V(ls_ids)[cell + 1u] == c) return;
-    uint4 link = V(bvh_links)[cell >> 1];
-    uint slot = cell & 1u;
-    uint first = slot == 0u ? link.x : link.y;
-    uint count = slot == 0u ? link.z : link.w;
-    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG cell >> 1, slot));
+    uint node = cell >> 2;
+    uint slot = cell & 3u;
+    uint first = comp4u(V(bvh_links)[2u * node], slot);
+    uint count = comp4u(V(bvh_links)[2u * node + 1u], slot);
+    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
     float3 lo = to_grid(CTX_ARG b.lo);
     float3 hi = to_grid(CTX_ARG b.hi);
     V(ls_cell_boxes)[2u * c] = make_float4(lo.x, lo.y, lo.z, 0.0f);
@@ -488,11 +549,11 @@ INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
 
 #if defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
 // ---- Traversal ----------------------------------------------------------------------------------
-// World space. The slab test of both children of a node at once; a zero direction component gets
-// 1/d = FLT_MAX instead of infinity (0 * inf would be NaN for an origin in a slab's plane; the
-// build's boxes are exact float min/max, so only a ray in a triangle's own plane meets a plane
-// exactly, and then it grazes). t_far is widened by 2 gamma(3) (Ize 2013, pbrt's robust slab test),
-// so float rounding never loses a box the ray touches.
+// World space. The slab test of a node's 4 slots at once (float4 lanes, the layout's point); a
+// zero direction component gets 1/d = FLT_MAX instead of infinity (0 * inf would be NaN for an
+// origin in a slab's plane; the build's boxes are exact float min/max, so only a ray in a
+// triangle's own plane meets a plane exactly, and then it grazes). t_far is widened by 2 gamma(3)
+// (Ize 2013, pbrt's robust slab test), so float rounding never loses a box the ray touches.
 STRUCT(BvhRay) { float3 o; float3 inv; };
 
 INLINE float bvh_rcp(float x) {
@@ -501,18 +562,10 @@ INLINE float bvh_rcp(float x) {
     return clamp(r, -BVH_FLT_MAX, BVH_FLT_MAX);
 }
 
-// (t_near, t_far) of box [lo, hi] within [t0, t1]; t_near > t_far: missed.
-INLINE float2 bvh_slab(BvhRay r, float3 lo, float3 hi, float t0, float t1) {
-    float3 a = (lo - r.o) * r.inv;
-    float3 b = (hi - r.o) * r.inv;
-    float3 n = min(a, b);
-    float3 f = max(a, b);
-    float tn = max(max(n.x, n.y), max(n.z, t0));
-    float tf = min(min(f.x, f.y), f.z) * 1.0000007f;
-    return make_float2(tn, min(tf, t1));
-}
+#define BVH_WIDEN 1.0000007f
+#define BVH_LEAF 0x80000000u  // a stack entry: a leaf, by its cell 4 * node + slot
 
-// The candidates of a leaf: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
+// The candidates of leaf `cell`: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
 // Space, the shaft of the ray's chord through the leaf's (padded) box: the ray in the box's own
 // unit-cube space (an affine map keeps t) is given to octree_ls.h's ols_leaf_shaft as a leaf at
 // cell (0, 0, 0), the lookup the octree leaves make (Algorithm 3).
@@ -520,84 +573,97 @@ INLINE float2 bvh_slab(BvhRay r, float3 lo, float3 hi, float t0, float t1) {
 INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf, int3 cell, float2 t_leaf);  // octree_ls.h
 #endif
 
-INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint node, uint slot, uint first, uint count, float2 span) {
-    Candidates c = plain_list(first, first + count);
+INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
+    uint node = cell >> 2;
+    uint slot = cell & 3u;
+    uint first = comp4u(V(bvh_links)[2u * node], slot);
+    Candidates c = plain_list(first, first + comp4u(V(bvh_links)[2u * node + 1u], slot));
 #ifdef LEAF_LINE_SPACE
-    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
-    float3 scale = b.hi - b.lo;
+    Box leaf = bvh_slot_box(CTX_ARG node, slot);
+    float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    float3 a = (leaf.lo - ray.o) * inv;
+    float3 b = (leaf.hi - ray.o) * inv;
+    float3 n = min(a, b);
+    float3 f = max(a, b);
+    float2 span = make_float2(max(max(n.x, n.y), max(n.z, tr.tmin)), min(min(f.x, f.y), f.z) * BVH_WIDEN);
+    Box box = bvh_ls_box(leaf);
+    float3 scale = box.hi - box.lo;
     GridRay g;
-    g.o = (ray.o - b.lo) / scale;
+    g.o = (ray.o - box.lo) / scale;
     g.d = ray.d / scale;
     g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
     g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
-    c = ols_leaf_shaft(CTX_ARG c, g, 2u * node + slot, make_int3(0, 0, 0), span);
+    c = ols_leaf_shaft(CTX_ARG c, g, cell, make_int3(0, 0, 0), span);
 #endif
     return test_candidates(CTX_ARG tr, c);
 }
 
-// Stack-based walk, near child first. A node visit (one `iterations` step) tests both children's
-// boxes against [tmin, the closest hit so far]; leaf children are tested at once (nearer first),
-// of two inner children the nearer is entered and the farther pushed with its entry t, and a
-// popped node whose entry lies past the closest hit by then is dropped. QUERY_ANY: the first hit
-// ends the walk (trace_done).
+// Push a hit slot (entry e at entry distance t) among the ones this node pushed so far, kept in
+// decreasing t from `base` up, so the nearest is popped first.
+#define BVH_PUSH(e_, t_) {                                                   \
+        int j_ = sp;                                                         \
+        while (j_ > base && stack_t[j_ - 1] < (t_)) {                        \
+            stack[j_] = stack[j_ - 1];                                       \
+            stack_t[j_] = stack_t[j_ - 1];                                   \
+            j_ -= 1;                                                         \
+        }                                                                    \
+        stack[j_] = (e_);                                                    \
+        stack_t[j_] = (t_);                                                  \
+        sp += 1;                                                             \
+    }
+#define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
+    if ((ref_) != BVH_NONE && (tn_) <= (tf_))                                \
+        BVH_PUSH((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_), tn_)
+
+// Stack-based walk, nearest first. A node visit (one `iterations` step) tests its 4 slots' boxes
+// against [tmin, the closest hit so far] and pushes the hit ones, nodes and leaves alike, in
+// order of entry distance; then entries are popped, nearest first: one whose entry lies past
+// the closest hit by then is dropped, a leaf is tested (trace.h's candidate loop), a node is
+// visited. QUERY_ANY: the first hit ends the walk. Stack: at most 3 entries per level of the path
+// plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
 INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(ray);
-    BvhRay br;
-    br.o = ray.o;
-    br.inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
+    float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
+    float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
+    float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
     uint stack[BVH_STACK];
     float stack_t[BVH_STACK];
     int sp = 0;
     uint node = 0u;
-    for (;;) {
+    int done = 0;
+    while (done == 0) {
         tr.iterations += 1u;
-        float4 n0 = V(bvh_nodes)[3u * node];
-        float4 n1 = V(bvh_nodes)[3u * node + 1u];
-        float4 nz = V(bvh_nodes)[3u * node + 2u];
-        uint4 link = V(bvh_links)[node];
-        float2 s0 = bvh_slab(br, make_float3(n0.x, n0.z, nz.x), make_float3(n0.y, n0.w, nz.y), tr.tmin, tr.best.t);
-        float2 s1 = bvh_slab(br, make_float3(n1.x, n1.z, nz.z), make_float3(n1.y, n1.w, nz.w), tr.tmin, tr.best.t);
-        int hit0 = s0.x <= s0.y ? 1 : 0;
-        int hit1 = s1.x <= s1.y ? 1 : 0;
-        // Slot order: nearer child first.
-        uint first_slot = (hit1 != 0 && (hit0 == 0 || s1.x < s0.x)) ? 1u : 0u;
-        uint next = BVH_NONE;
-        float next_t = 0.0f;
-        for (uint k = 0u; k < 2u; ++k) {
-            uint slot = k == 0u ? first_slot : 1u - first_slot;
-            int hit = slot == 0u ? hit0 : hit1;
-            float2 s = slot == 0u ? s0 : s1;
-            uint ref = slot == 0u ? link.x : link.y;
-            uint count = slot == 0u ? link.z : link.w;
-            if (hit == 0 || s.x > tr.best.t || ref == BVH_NONE) continue;
-            if (count > 0u) {
-                tr = bvh_test_leaf(CTX_ARG tr, ray, node, slot, ref, count, s);
-#ifdef QUERY_ANY
-                if (tr.best.prim >= 0) break;
-#endif
-            } else if (next == BVH_NONE) {
-                next = ref;
-                next_t = s.x;
-            } else {  // sp < BVH_STACK: one entry per level of the path at most
-                stack[sp] = ref;
-                stack_t[sp] = s.x;
-                sp += 1;
-            }
-        }
-#ifdef QUERY_ANY
-        if (tr.best.prim >= 0) break;
-#endif
-        if (next != BVH_NONE) {
-            node = next;
-            continue;
-        }
-        // Pop the nearest pending node that can still hold a closer hit.
+        float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;
+        float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;
+        float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;
+        float4 by = (V(bvh_nodes)[6u * node + 3u] - oy) * inv.y;
+        float4 az = (V(bvh_nodes)[6u * node + 4u] - oz) * inv.z;
+        float4 bz = (V(bvh_nodes)[6u * node + 5u] - oz) * inv.z;
+        float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));
+        float best = tr.best.t;
+        float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,
+                        make_float4(best, best, best, best));
+        uint4 refs = V(bvh_links)[2u * node];
+        uint4 counts = V(bvh_links)[2u * node + 1u];
+        int base = sp;
+        BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)
+        BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)
+        BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)
+        BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
         node = BVH_NONE;
         while (sp > 0) {
             sp -= 1;
-            if (stack_t[sp] <= tr.best.t) { node = stack[sp]; break; }
+            uint e = stack[sp];
+            if (stack_t[sp] > tr.best.t) continue;
+            if ((e & BVH_LEAF) == 0u) { node = e; break; }
+            tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);
+#ifdef QUERY_ANY
+            if (tr.best.prim >= 0) break;
+#endif
         }
-        if (node == BVH_NONE) break;
+        if (node == BVH_NONE) done = 1;
     }
     return trace_finish(CTX_ARG tr, id);
 }
