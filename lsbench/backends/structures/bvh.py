@@ -58,8 +58,9 @@ LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
 DEFAULT_LEAF_SIZE = 8
 # The quality pass (options["bvh_quality"]): "none" (the plain LBVH: every subtree of at most
 # leaf_size triangles one leaf), "sah" (the SAH decides those leaves), "treelet" (that, then
-# TREELET_ROUNDS rounds of treelet restructuring, Karras & Aila 2013; the default).
-QUALITIES = ("none", "sah", "treelet")
+# TREELET_ROUNDS rounds of treelet restructuring, Karras & Aila 2013; bvh's default),
+# "plain-treelet" (the plain leaves, then the restructuring; bvh-ls's default).
+QUALITIES = ("none", "sah", "treelet", "plain-treelet")
 TREELET_ROUNDS = 6
 MAX_TRIANGLES = 2**31 - 1
 
@@ -151,7 +152,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
               quality: str = "treelet") -> tuple[dict[str, DeviceBuffer], dict]:
     """Build steps 1-5 (module docstring). Returns the structure's buffers (bvh_nodes, bvh_links,
     voxel_tris) and the build's stats."""
-    sah = check_quality(quality) != "none"
+    sah = check_quality(quality) in ("sah", "treelet")
     if n_tris > MAX_TRIANGLES:
         raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
     if n_tris < 1:
@@ -189,7 +190,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             root_area = _area(root[:3], root[4:7])
             cost, plain = (float(c) / root_area if root_area > 0 else 0.0 for c in device.read(costs, np.float32, 2))
             stats.update(sah_cost=cost, sah_cost_plain=plain, sah_cost_collapse=cost)
-            if quality == "treelet":
+            if quality in ("treelet", "plain-treelet"):
                 cut = temp("bvh_cut", 4, zero=True)
                 for _ in range(TREELET_ROUNDS):
                     device.fill_zero(arrivals)

@@ -4,9 +4,10 @@ cells and the leaf lookup) on linespace.h and octree_ls.h.
 
 Build, all on the device:
 1. the BVH as `bvh` builds it (bvh.build_bvh), but with the plain LBVH's leaves: every subtree of
-   at most leaf_size triangles (default 16) is one leaf. The SAH collapse of `bvh` knows nothing of
-   Line Spaces and keeps leaves of ~2 triangles, which no Line Space can speed up; here the Line
-   Space is what makes a large leaf cheap to test (bvh_quality = "sah" asks for the SAH leaves);
+   at most leaf_size triangles (default 16) is one leaf, then the treelet restructuring above them
+   (bvh_quality "plain-treelet"). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
+   leaves of ~2 triangles, which no Line Space can speed up; here the Line Space is what makes a
+   large leaf cheap to test (bvh_quality = "treelet" asks for the SAH leaves);
 2. the cells: every child slot of a node (cell = 2 * node + slot) that is a leaf of more than
    K = ls_min_candidates triangles is flagged, an exclusive scan gives ls_ids (slot -> Line Space),
    and each such leaf's box (padded so that no side is under 5 % of the longest: bvh.h
@@ -52,7 +53,7 @@ class LineSpaceBVH:
         n = linespace.check_n(params.ls_n or 1)
         k = linespace.check_min_candidates(params.ls_min_candidates)
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
-                                       quality=params.options.get("bvh_quality", "none"))
+                                       quality=params.options.get("bvh_quality", "plain-treelet"))
         slots = bvh.WIDTH * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)
         made: list[DeviceBuffer] = []
