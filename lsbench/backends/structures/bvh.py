@@ -223,6 +223,9 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             stats["sah_cost"] = stats["sah_cost_plain"] = stats["sah_cost_collapse"] = 0.0
             ids, n_nodes, n_binary, stats["depth"] = temp("bvh_ids", 4, zero=True), 0, 0, 0
             keep = temp("bvh_keep", 4, zero=True)
+        if WIDTH * n_nodes >= 2**31:
+            raise DeviceLimitError(f"bvh: {n_nodes} nodes overflow the traversal's 31-bit leaf entries "
+                                   "(4 * node + slot)")
         nodes = device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)
         made.append(nodes)
         links = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
