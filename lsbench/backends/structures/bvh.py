@@ -28,9 +28,10 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
 
 Speed (`lsbench speedtest --structures grid esvo bvh bvh-ls`, Sponza 256² from speedtest.toml's
-interior camera, 2 shared cores, Embree in the same worker): bvh on PoCL 0.48x Embree on primary
-rays and 0.31x on incoherent ones (esvo 512³: 0.33x, 0.17x; tinybvh's Aila-Laine kernel on PoCL:
-0.62x, 0.54x), on llvmpipe 0.06x and 0.10x. Where the time goes: ~35 node visits of 4 box tests
+interior camera, 2 shared cores, Embree in the same worker; three runs at different loads): bvh
+on PoCL 0.38-0.48x Embree on primary rays and 0.31-0.37x on incoherent ones (esvo 512³ in the
+same runs: 0.33-0.36x, 0.09-0.17x; tinybvh's Aila-Laine kernel on PoCL: 0.62x, 0.54x), on
+llvmpipe 0.06x and 0.10x. Where the time goes: ~35 node visits of 4 box tests
 and ~8 triangle tests per primary ray, in scalar work items (PoCL runs these divergent loops one
 work item at a time, the float4 slab test is its only SIMD); the tree, a Morton-code LBVH even
 after the treelets (SAH cost 102), takes more visits than a binned-SAH build would.
