@@ -3,6 +3,7 @@ throw-away git repository whose fake `python -m lsbench run` writes records."""
 from __future__ import annotations
 
 import json
+import re
 import math
 import subprocess
 import sys
@@ -279,7 +280,8 @@ def _git(repo, *args):
 
 @pytest.mark.skipif(subprocess.run(["git", "--version"], capture_output=True).returncode != 0,
                     reason="git not installed")
-def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path, monkeypatch):
+def fake_repo(tmp_path):
+    """A git repository whose fake lsbench runs 30 % slower at HEAD than at HEAD~1: (repo, scenario)."""
     repo = tmp_path / "repo"
     (repo / "lsbench").mkdir(parents=True)
     _git(tmp_path, "init", "-q", str(repo))
@@ -294,6 +296,13 @@ def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path, monkey
     (repo / "lsbench" / "speed.py").write_text("SPEED = 100.0\n")
     scenario = tmp_path / "s.toml"
     scenario.write_text('name = "tiny"\n')
+    return repo, scenario
+
+
+@pytest.mark.skipif(subprocess.run(["git", "--version"], capture_output=True).returncode != 0,
+                    reason="git not installed")
+def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path, monkeypatch):
+    repo, scenario = fake_repo(tmp_path)
 
     # $SCENES is the calling checkout's scenes folder, also when LSBENCH_SCENES is not exported
     monkeypatch.delenv("LSBENCH_SCENES", raising=False)
@@ -315,3 +324,128 @@ def test_compare_commits_runs_each_revision_in_its_own_worktree(tmp_path, monkey
 
     with pytest.raises(ValueError, match="unknown revision"):
         commits.compare_commits("nope", "HEAD", scenario, repo_dir=repo, out_dir=tmp_path / "x")
+
+
+# ---------------------------------------------------------------- stated power
+
+def _same_slowdown_run(path, keys, trace, repeats, seed0):
+    return write(path, [record(k, trace=trace, repeats=repeats, seed=seed0 + i) for i, k in enumerate(keys)])
+
+
+def test_compare_states_its_power_and_a_run_wide_false_alarm_rate(tmp_path, capsys):
+    # the CI scenario's shape: 60 cases, 3 repeats, a uniform 30 % slowdown
+    keys = [f"case{i}|32" for i in range(60)]
+    base = _same_slowdown_run(tmp_path / "base3", keys, 0.010, 3, 0)
+    head = _same_slowdown_run(tmp_path / "head3", keys, 0.013, 3, 100)
+    res = compare.compare_runs(base, head)
+    # 3 against 3 repeats: the smallest p is 1/20, above Holm's first level 0.05/60, so no speed
+    # verdict can fire, and the output says so instead of calling the run clean by omission
+    assert not any("speed" in c.verdicts for c in res.cases)
+    assert all(c.p_value == pytest.approx(0.05) and c.holm_level for c in res.cases)
+    assert cli.main(["compare", str(base), str(head)]) == 0
+    out = capsys.readouterr().out
+    assert "false alarms: at most 0.05 per run (family-wise, Holm over the 60 cases" in out
+    assert ("3 vs 3 repeats per case: smallest possible p 0.05, Holm's strictest level 0.05/60 = "
+            "0.000833: NO speed regression can be flagged; 7 repeats per side are needed") in out
+    # every compared row carries the interval of its ratio: 3 v 3 = the 9 pairwise ratios, 90 %
+    rows = [line for line in out.splitlines() if line.startswith("case")][1:]
+    assert len(rows) == 60 and all(re.search(r"0\.\d{3}-0\.\d{3} \(90%\)", r) for r in rows)
+    c = res.cases[0]
+    lo, hi = c.ratio_ci[1:3]
+    sb, sh = c.samples
+    assert lo == pytest.approx((sh / sb[:, None]).min()) and hi == pytest.approx((sh / sb[:, None]).max())
+    assert lo <= c.speed_ratio <= hi
+
+    # 8 repeats over the same 60 cases: Holm's first level is reachable, the slowdown is found in
+    # every case, and the smallest detectable change is printed for the repeats given
+    base = _same_slowdown_run(tmp_path / "base8", keys, 0.010, 8, 0)
+    head = _same_slowdown_run(tmp_path / "head8", keys, 0.013, 8, 100)
+    res = compare.compare_runs(base, head)
+    assert all(c.verdicts == ["speed"] for c in res.cases)
+    text = res.to_text()
+    assert "8 vs 8 repeats per case: smallest possible p 7.77e-05" in text and "can be flagged" in text
+    assert "smallest detectable change (mdc" in text
+    # 1 % noise, 8 v 8: a few per cent is detectable; the factor 1.1 then decides
+    assert all(0.9 < c.detectable < 1.0 for c in res.cases)
+
+
+def test_holm_corrects_across_cases(tmp_path):
+    # 10 cases, 5 v 5 repeats: Holm's levels are 0.05/10, 0.05/9, ...
+    keys = [f"case{i}|32" for i in range(10)]
+    base_recs = [dict(record(k), trace_seconds_all=[0.0100, 0.0101, 0.0102, 0.0103, 0.0104]) for k in keys]
+    head_recs = [dict(record(k), trace_seconds_all=[0.0100, 0.0101, 0.0102, 0.0103, 0.0104]) for k in keys]
+    # case0: all five repeats slower than all of base (p = 1/252); case1: one pair overlaps (2/252)
+    head_recs[0].update(trace_seconds_all=[0.0130, 0.0131, 0.0132, 0.0133, 0.0134], trace_seconds=0.0132,
+                        rays_per_second=1e4 / 0.0132)
+    head_recs[1].update(trace_seconds_all=[0.01035, 0.0131, 0.0132, 0.0133, 0.0134], trace_seconds=0.0132,
+                        rays_per_second=1e4 / 0.0132)
+    res = compare.compare_runs(write(tmp_path / "base", base_recs), write(tmp_path / "head", head_recs))
+    by = {c.key: c for c in res.cases}
+    assert by["case0|32"].p_value == pytest.approx(1 / 252) and by["case0|32"].verdicts == ["speed"]
+    # at 0.05 per case it would be flagged too; after Holm (0.0079 > 0.05/9) it is not
+    c1 = by["case1|32"]
+    assert c1.p_value == pytest.approx(2 / 252) and c1.p_value < 0.05 and c1.verdicts == []
+    assert "within noise (p 0.00794 > Holm level 0.00556)" in " ".join(c1.notes)
+
+
+def test_runs_of_one_commit_give_one_sample_per_process(tmp_path, capsys):
+    # the repeats inside one process agree closely, the processes do not: three runs per side
+    def run(name, trace, seed):
+        return write(tmp_path / name, [record("grid|64", trace=trace, noise=0.001, seed=seed)])
+    bases = [run(f"b{i}", t, i) for i, t in enumerate((0.010, 0.012, 0.009))]
+    heads = [run(f"h{i}", t, 10 + i) for i, t in enumerate((0.011, 0.0095, 0.0125))]
+    pooled = compare.compare_runs(bases[0], heads[0])  # one process each: 5 v 5 repeats
+    assert pooled.cases[0].units == "repeats" and pooled.cases[0].n_base == 5
+    assert pooled.cases[0].p_value < 0.01  # the repeats of one process claim a difference
+    res = compare.compare_runs(bases, heads)
+    c = res.cases[0]
+    assert c.units == "processes" and (c.n_base, c.n_head) == (3, 3)
+    assert c.p_value > 0.3 and not c.regression
+    medians = [float(np.median(1e4 / np.asarray(store.read_run(d)[1][0]["trace_seconds_all"]))) for d in heads]
+    assert sorted(c.samples[1]) == pytest.approx(sorted(medians))
+    assert cli.main(["compare", str(bases[0]), str(heads[0]), "--base-also", str(bases[1]),
+                     "--base-also", str(bases[2]), "--head-also", str(heads[1]), "--head-also",
+                     str(heads[2])]) == 0
+    out = capsys.readouterr().out
+    assert "3 vs 3 processes per case" in out and "3v3p" in out and "(+2 more runs)" in out
+
+
+def test_compare_commits_repeats_across_processes(tmp_path, capsys):
+    repo, scenario = fake_repo(tmp_path)
+    res = commits.compare_commits("HEAD~1", "HEAD", scenario, out_dir=tmp_path / "cmp", repo_dir=repo,
+                                  processes=2, stream=sys.stderr)
+    dirs = sorted(p.name for p in (tmp_path / "cmp").iterdir())
+    assert len(dirs) == 4 and sum(d.endswith("-p2") for d in dirs) == 2
+    c = res.cases[0]
+    assert c.units == "processes" and (c.n_base, c.n_head) == (2, 2)
+    assert c.speed_ratio == pytest.approx(0.7)
+    # two processes per side can never pass 0.05 (smallest p 1/6): said, and no verdict claimed
+    assert c.verdicts == [] and "within noise" in " ".join(c.notes)
+    text = res.to_text()
+    assert "2 vs 2 processes per case: smallest possible p 0.167" in text
+    assert "NO speed regression can be flagged; 3 processes per side are needed" in text
+
+
+def test_tied_small_samples_get_the_exact_permutation_p():
+    # 2 v 2 with ties: no ordering gives p below 1/6; the normal approximation said 0.097
+    _, p = stats.mann_whitney_less([1.0, 1.0], [2.0, 2.0])
+    assert p == pytest.approx(1 / 6)
+    _, p = stats.mann_whitney_less([1.0, 2.0, 2.0], [2.0, 3.0, 3.0])
+    assert stats.min_p_value(3, 3) <= p < 0.5
+    assert stats.samples_needed(0.05) == 3 and stats.samples_needed(0.05 / 60) == 7
+    est, lo, hi, cov = stats.ratio_interval([7.0, 7.1, 6.9], [10.0, 10.2, 9.8])
+    assert lo < est < hi and est == pytest.approx(0.7, rel=0.02) and cov == pytest.approx(0.9)
+
+
+def test_processes_auto_is_what_a_lone_slowdown_needs(tmp_path):
+    scenario = tmp_path / "two.toml"
+    scenario.write_text('name = "two"\n[[cases]]\nscenes = ["cornell"]\nstructures = ["grid"]\n'
+                        'backends = ["glsl", "opencl"]\nresolutions = [8]\n')
+    # 2 cases: Holm's first level 0.05/2; 3 v 3 reach only 1/20, 4 v 4 reach 1/70
+    assert commits.processes_needed(scenario, 0.05) == (4, 2)
+    assert commits.processes_needed(scenario, 0.2) == (3, 2)
+    assert commits.processes_needed("ci", 0.05)[0] >= 7  # the CI gate's many cases
+    for bad in ("0", "many"):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["compare-commits", "HEAD", "HEAD", str(scenario), "--processes", bad])
+        assert exc.value.code == 2

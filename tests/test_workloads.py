@@ -324,3 +324,23 @@ def test_any_hit_disagreements_are_classified_in_float64():
 def test_too_many_secondary_rays_is_a_ray_error(cornell):
     with pytest.raises(RayError, match="over the limit"):
         make_rays("ao", cornell, 8192, 8192, None, {"samples": 2})
+
+
+@pytest.mark.parametrize("name, params", [("shadow", {"samples": 2, "light_size": 0.5}), ("ao", {"samples": 2, "distance": 0.1})])
+def test_embree_occlusion_query_agrees_with_its_closest_hit(name, params):
+    """Embree's any-hit speed is timed with its own occlusion query (oracle/embree.py): that query
+    answers what the ground truth derives from the closest hit, ray for ray, except for hits
+    within float32 of tmax (its tfar is one float below tmax)."""
+    from lsbench.oracle.embree import embree_any_hit, embree_timer
+    from lsbench.oracle.verify import embree_occluded
+
+    scene = load_scene("spheres")
+    rays = make_rays(name, scene, 48, 48, None, params)
+    ref_p, ref_t = embree_closest(scene, rays)
+    derived = embree_occluded(ref_p, ref_t, rays.tmax)
+    own = embree_any_hit(scene, rays)
+    assert 0.02 < derived.mean() < 0.98  # a set with both answers
+    differ = derived != own
+    near_tmax = np.abs(ref_t - rays.tmax) <= 1e-5 * np.abs(rays.tmax)
+    assert not np.any(differ & ~near_tmax), np.flatnonzero(differ)[:10]
+    assert embree_timer(scene, rays)() > 0

@@ -5,6 +5,11 @@
     hits = trace(built, rays)                # rays.query "closest": prim id + distance per ray;
                                              # "any": a hit in [tmin, tmax) per ray, or -1
     timing = time_trace(built, rays, 1, 5)   # device time of the trace kernel
+
+Where the device bounds a launch's loops (Device.loop_budget: llvmpipe), a trace runs in bounded
+slices: each launch runs at most that many loop iterations per ray and the unfinished rays are
+launched again (shaders/common/trace.h). budget= (or env LSBENCH_SLICE_BUDGET, "none" = unbounded)
+forces a budget on any device, e.g. to test the slices on OpenCL.
 """
 from __future__ import annotations
 
@@ -15,11 +20,17 @@ import numpy as np
 
 from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
-from .structures.base import BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, with_work_counters
+from .kernels import SLICE_WORDS
+from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, sliced,
+                              with_work_counters)
 
 BACKENDS = ("glsl", "opencl")
 # Hit id of a ray whose traversal loops the driver cut short (cut_hit, shaders/common/trace.h).
 LOOP_CUT_PRIM = -2
+# Hit id of a ray a sliced launch suspended (SLICE_PENDING, shaders/common/trace.h).
+SLICE_PENDING = -3
+# Marks "no budget given" apart from None (unbounded) in trace() and time_trace().
+DEVICE_BUDGET = "device"
 _devices: dict[str, Device] = {}
 
 
@@ -153,21 +164,78 @@ def _release(device, bufs, names):
             device.release(bufs[n])
 
 
-def trace(built: Built, rays, work: bool = False) -> Hits:
+def slice_budget(device: Device, budget=DEVICE_BUDGET) -> int | None:
+    """The loop iterations per ray of one traversal launch: `budget` where given (None =
+    unbounded), else env LSBENCH_SLICE_BUDGET (a positive integer or "none"), else the device's."""
+    if budget == DEVICE_BUDGET:
+        forced = os.environ.get("LSBENCH_SLICE_BUDGET", "").strip().lower()
+        if not forced:
+            return device.loop_budget
+        if forced == "none":
+            return None
+        if not forced.isdigit() or int(forced) < 1:
+            raise ValueError(f"LSBENCH_SLICE_BUDGET must be a positive integer or 'none', got {forced!r}")
+        budget = int(forced)
+    if budget is not None and int(budget) < 1:
+        raise ValueError(f"a slice budget must be a positive integer or None, got {budget!r}")
+    return None if budget is None else int(budget)
+
+
+def _dispatch(d: Device, *args) -> None:
+    """An untimed slice launch (_run_slices' `launch`)."""
+    d.dispatch(*args)
+
+
+def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int, launch) -> int:
+    """Traversal in bounded slices (shaders/common/trace.h): launch the kernel over the unfinished
+    rays, `budget` loop iterations each, until every ray has its hit; returns the launches made.
+    hit_prim says which rays are left (SLICE_PENDING); a ray whose loops the driver still cut
+    (LOOP_CUT_PRIM: llvmpipe's limit is per SIMD group) kept its earlier state and runs again with
+    half the budget; cut at a budget of 1, the case fails naming the limit."""
+    state = bufs["slice_state"]
+    d.fill_zero(state)  # phase 0: every ray starts fresh
+    list_base = SLICE_WORDS * n
+    pending = np.arange(n, dtype=np.uint32)
+    slices = 0
+    while pending.size:
+        d.write(state, pending, 4 * list_base)
+        launch(d, spec, int(pending.size), bufs, dict(uniforms, slice_budget=budget, slice_list_base=list_base))
+        slices += 1
+        prim = d.read(bufs["hit_prim"], np.int32, n)
+        cut = prim[pending] == LOOP_CUT_PRIM
+        if cut.any():
+            if budget == 1:
+                raise d.loop_limit_error(f"the traversal loops of {int(cut.sum())} of {n} rays at a slice "
+                                         "budget of 1 loop iteration per ray")
+            budget = max(1, budget // 2)
+        pending = pending[(prim[pending] == SLICE_PENDING) | cut]
+    return slices
+
+
+def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     """The hit of every ray for the ray set's query (rays.query: closest, or any hit in
-    [tmin, tmax)); work=True runs the profiling kernel with per-ray counters."""
+    [tmin, tmax)); work=True runs the profiling kernel with per-ray counters. `budget`: loop
+    iterations per ray and launch (slice_budget: the device's unless given)."""
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     spec = with_work_counters(spec, d) if work else spec
     bufs = _trace_buffers(built, rays, work)
-    d.dispatch(spec, rays.count, bufs, built.uniforms)
-    d.finish()
-    order = launch_order(rays)
-    hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
-                _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order))
-    if work:
-        hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
-    _release(d, bufs, ("rays", "hit_prim", "hit_t", "work"))
+    budget = slice_budget(d, budget)
+    try:
+        if budget is None:
+            d.dispatch(spec, rays.count, bufs, built.uniforms)
+            slices = 1
+        else:
+            bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
+            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget, _dispatch)
+        d.finish()
+        order = launch_order(rays)
+        hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
+                    _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices)
+        if work:
+            hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
+    finally:
+        _release(d, bufs, ("rays", "hit_prim", "hit_t", "work", "slice_state"))
     cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
     if cut:
         raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
@@ -175,15 +243,40 @@ def trace(built: Built, rays, work: bool = False) -> Hits:
     return hits
 
 
-def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=None) -> Timing:
+def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=None,
+               budget=DEVICE_BUDGET) -> Timing:
     """Device time of the plain (counter-free) trace kernel of the ray set's query, warm-up
-    launches not counted; `between()` runs after each timed launch, untimed (Device.time_dispatch)."""
+    launches not counted; `between()` runs after each timed launch, untimed (Device.time_dispatch).
+    In bounded slices (slice_budget) a timed trace is all its slices, their device times summed,
+    warm-up traces and `between()` around whole traces."""
     d = built.device
+    spec = for_query(built.trace_spec, rays.query)
     bufs = _trace_buffers(built, rays, False)
-    timing = d.time_dispatch(for_query(built.trace_spec, rays.query), rays.count, bufs, built.uniforms, warmup,
-                             repeats, between)
-    _release(d, bufs, ("rays", "hit_prim", "hit_t"))
-    return timing
+    budget = slice_budget(d, budget)
+    try:
+        if budget is None:
+            return d.time_dispatch(spec, rays.count, bufs, built.uniforms, warmup, repeats, between)
+        bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
+        spec = sliced(spec)
+        for _ in range(max(warmup, 1)):
+            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, _dispatch)
+        d.finish()
+        seconds, clocks = [], set()
+        for _ in range(repeats):
+            spent = []
+
+            def timed(dev, *args):
+                s, clock = dev.dispatch_timed(*args)
+                spent.append(s)
+                clocks.add(clock)
+
+            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, timed)
+            seconds.append(sum(spent))
+            if between is not None:
+                between()
+        return Timing(seconds, " + ".join(sorted(clocks)) + ", summed over the slices")
+    finally:
+        _release(d, bufs, ("rays", "hit_prim", "hit_t", "slice_state"))
 
 
 def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None, line_spaces: bool) -> None:

@@ -86,6 +86,15 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def fill_zero(self, buf: DeviceBuffer) -> None: ...
 
+    def write(self, buf: DeviceBuffer, array: np.ndarray, offset: int = 0) -> None:
+        """Copy `array` into buf from byte `offset` on (the ray list of a trace slice)."""
+        raise NotImplementedError(f"{self.backend}: write")
+
+    # Loop iterations (walk steps + candidate tests) one traversal launch may run per ray before
+    # the host re-dispatches the unfinished rays (traversal in bounded slices, shaders/common/trace.h);
+    # None: unbounded, one launch runs whole rays. llvmpipe sets one (glsl.py); PoCL and NVIDIA none.
+    loop_budget: int | None = None
+
     @abc.abstractmethod
     def release(self, buf: DeviceBuffer) -> None:
         """Free buf's device memory now (the driver's handle is unusable afterwards)."""
@@ -153,6 +162,12 @@ class Device(abc.ABC):
         """Warm-up launches (not counted: compile, first launch), then `repeats` timed ones;
         `between` is called after each timed launch has finished, outside its timing (execute.py
         times Embree there, so the two figures of a ratio see the same load on a shared machine)."""
+
+    def dispatch_timed(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],
+                       uniforms: dict[str, object] | None = None) -> tuple[float, str]:
+        """One launch (as dispatch), waited for; its device time and the clock that measured it
+        (the slices of a timed trace, whose launches differ, are timed one by one and summed)."""
+        raise NotImplementedError(f"{self.backend}: dispatch_timed")
 
     # --- device clock of the profiling kernels (COUNT_WORK, shaders/common/trace.h) --------------
     @abc.abstractmethod

@@ -92,6 +92,13 @@ GRID_UNIFORMS = (Uniform("grid_origin", "float4"), Uniform("grid_inv_voxel", "fl
 # Per-ray work counters (iterations, candidate tests, Line Space lookups, clock) for profiling
 # builds only: the plain kernels are compiled without COUNT_WORK and never touch this buffer.
 WORK_BUFFER = Buf("work", "uint4", "w")
+# Traversal in bounded slices (SLICED, shaders/common/trace.h): one buffer holds every ray's state
+# (SLICE_WORDS uints each) and, from slice_list_base on, the slice's compacted ray ids (one buffer,
+# not two: llvmpipe binds at most 16 storage buffers and a split Line Space trace needs 16 already);
+# slice_budget is the loop iterations a ray may run in one launch.
+SLICE_WORDS = 16  # must match shaders/common/trace.h
+SLICE_BUFFER = Buf("slice_state", "uint", "rw")
+SLICE_UNIFORMS = (Uniform("slice_budget", "uint"), Uniform("slice_list_base", "uint"))
 
 
 def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers: tuple[Buf, ...],

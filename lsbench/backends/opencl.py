@@ -182,6 +182,10 @@ class OpenCLDevice(Device):
         self.cl.enqueue_copy(self.queue, out, buf.handle, is_blocking=True)
         return out
 
+    def write(self, buf, array, offset=0):
+        self.cl.enqueue_copy(self.queue, buf.handle, np.ascontiguousarray(array), dst_offset=int(offset),
+                             is_blocking=True)
+
     def fill_zero(self, buf):
         self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes)
 
@@ -290,6 +294,11 @@ class OpenCLDevice(Device):
             if between is not None:
                 between()
         return Timing(seconds, "OpenCL event profiling")
+
+    def dispatch_timed(self, spec, n_items, buffers, uniforms=None):
+        event = self._launch(spec, n_items, self._args(spec, n_items, buffers, uniforms))
+        event.wait()
+        return (event.profile.end - event.profile.start) * 1e-9, "OpenCL event profiling"
 
     # --- prefix sum ------------------------------------------------------------------------
     def exclusive_scan(self, src, n, name):

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from lsbench.commands.common import UsageError, add_scenario_arguments, say
+from lsbench.inputs.checks import writable_folder
 
 NAME = "run"
 HELP = "run every case of a scenario"
@@ -19,6 +20,9 @@ def setup_arguments(sub) -> None:
     add_scenario_arguments(p)
     p.add_argument("--allow-failed", action="store_true",
                    help="exit 0 even when cases fail (sweeps that expect named driver limits)")
+    p.add_argument("--history", type=writable_folder, metavar="DIR",
+                   help="when the run ends, append its records to the history database DIR "
+                        "(docs/history.md; the nightly does)")
     p.set_defaults(func=run)
 
 
@@ -77,6 +81,7 @@ def run_scenario_file(args):
     if scenario.settings.gpu_width and not args.cluster:
         scenario = load_run_scenario(args, gpu=uses_gpu(backends))
     out = prepare_out_dir(Path(args.out) if args.out else default_out_dir(scenario.name))
+    args.run_dir = out  # where it went, for `run --history`
     try:
         with RunLock(out, " ".join(["lsbench", *sys.argv[1:]])):
             check_writable(out, args.fresh)
@@ -106,7 +111,10 @@ def run_scenario_file(args):
 
 
 def _run_into(out: Path, args, scenario, devices: dict, plans, env: dict, cases=None, info: dict | None = None):
-    """Run the planned cases into `out` (locked), writing run.json (with `info` added)."""
+    """Run the planned cases into `out` (locked), writing run.json (with `info` added, and the
+    history database it will go to: the report links that history's page)."""
+    if getattr(args, "history", None):
+        info = dict(info or {}, history_dir=str(Path(args.history).resolve()))
     from lsbench.running.runner import run_locally, run_scenario
 
     if not args.fresh:  # a --fresh run replaces run.json with results.jsonl, once done
@@ -121,6 +129,16 @@ def _run_into(out: Path, args, scenario, devices: dict, plans, env: dict, cases=
 
 def run(args) -> int:
     _, records = run_scenario_file(args)
+    if args.history:
+        from lsbench.paths import source_checkout
+        from lsbench.results.history import HistoryError, append_run
+
+        try:
+            say(f"history: stored as {append_run(args.history, args.run_dir, source_checkout() or '.')}")
+        except HistoryError as exc:
+            raise UsageError(f"--history {args.history}: {exc}") from None
+        from lsbench.commands.history import write_page
+        say(f"history page: {write_page(args.history)}")
     failed = [r for r in records if r.get("status") != "ok"]
     if failed and not args.allow_failed:
         say(f"\n{len(failed)} of {len(records)} cases failed (exit 1; --allow-failed exits 0)")

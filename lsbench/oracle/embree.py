@@ -14,12 +14,16 @@ version changes):
   at t = 0). `rays.tmin` therefore cannot be passed through; for tmin != 0 the origins are moved
   to `o + tmin * d` and tmin is added back to the distance. That equals "ignore hits with
   t < tmin" up to float32 rounding of the moved origin (|error| ~ 1 ulp of the coordinates).
-- A ray set's per-ray tmax is not passed either: every ray is traced to infinity, and
-  lsbench.oracle.verify reads a hit at t >= tmax as none. An any-hit query (shadow, AO rays) is
-  answered from the closest hit too (occluded iff t < tmax, verify.embree_occluded):
-  `query='OCCLUDED'` is broken in embreex 4.4 (it returns -1 for hits). The cache holds the
-  closest hits only, so one file serves a ray set under either query.
-- Passing `dists=` makes embreex write into that array in place; we never pass it.
+- A ray set's per-ray tmax is not passed to the ground truth: every ray is traced to infinity,
+  and lsbench.oracle.verify reads a hit at t >= tmax as none. An any-hit query (shadow, AO rays)
+  is answered from the closest hit too (occluded iff t < tmax, verify.embree_occluded), so the
+  cache holds closest hits only and one file serves a ray set under either query.
+- `query='OCCLUDED'` with `dists=` (tfar) returns 0 for an occluded ray and -1 otherwise (a flag,
+  not a hit id; the tfar test is inclusive). It is what Embree's any-hit speed is timed with
+  (embree_timer for a ray set whose query is "any"), with tfar one float below tmax - tmin so its
+  range is our [tmin, tmax); `embree_any_hit` returns its flags (tests check them against the
+  closest-hit answer). OCCLUDED leaves `dists` as it was (checked), so one tfar array serves every
+  timed repeat; with `query='INTERSECT'`, `dists=` is written in place, and we never pass it there.
 - Zero-area triangles (a repeated index, or collinear corners) are accepted by the build and are
   never hit (Embree's determinant is zero), which is the right answer for a closest-hit query.
 - `run()` is a plain loop over `rtcIntersect1` that releases the GIL, and Embree allows
@@ -54,6 +58,10 @@ class RaySet(Protocol):
     origins: np.ndarray
     directions: np.ndarray
     tmin: float
+    query: str
+
+    @property
+    def tmax_array(self) -> np.ndarray: ...
 
     @property
     def count(self) -> int: ...
@@ -200,6 +208,12 @@ def _run_threads(escene, origins, directions, prim_ids, t, threads: int | None) 
         prim_ids[lo:hi] = out["primID"]
         t[lo:hi] = out["tfar"]
 
+    _map_chunks(n, run_chunk, threads)
+
+
+def _map_chunks(n: int, run_chunk, threads: int | None) -> None:
+    """Run run_chunk((lo, hi)) over [0, n) in chunks on `threads` threads (all usable CPUs by
+    default); Embree releases the GIL inside run()."""
     threads = threads or _usable_cpus()
     chunk_count = min(threads * 4, max(1, n // MIN_RAYS_PER_CHUNK))  # x4: load balance
     edges = np.linspace(0, n, chunk_count + 1).astype(np.int64)
@@ -212,10 +226,41 @@ def _run_threads(escene, origins, directions, prim_ids, t, threads: int | None) 
             list(pool.map(run_chunk, chunks))  # list(): re-raise worker exceptions
 
 
+def _occlusion_tfar(rays: RaySet) -> np.ndarray:
+    """Embree's inclusive tfar for our [tmin, tmax): one float32 below tmax - tmin (the origins
+    are moved by tmin, _ray_arrays)."""
+    tmax = np.asarray(rays.tmax_array, np.float64) - float(rays.tmin)
+    return np.nextafter(tmax.astype(np.float32), np.float32(-np.inf)).clip(min=0.0).astype(np.float32)
+
+
+def _run_occluded(escene, origins, directions, tfar, occluded, threads: int | None) -> None:
+    """Embree's any-hit query of every ray, split over threads like _run_threads."""
+    def run_chunk(bounds: tuple[int, int]) -> None:
+        lo, hi = bounds
+        occluded[lo:hi] = escene.run(origins[lo:hi], directions[lo:hi], dists=tfar[lo:hi],
+                                     query="OCCLUDED") != -1
+
+    _map_chunks(origins.shape[0], run_chunk, threads)
+
+
+def embree_any_hit(scene: Scene, rays: RaySet, threads: int | None = None) -> np.ndarray:
+    """Embree's own any-hit answer: a bool per ray, occluded in [tmin, tmax). The ground truth
+    derives occlusion from the cached closest hits instead (verify.embree_occluded); this is the
+    query embree_timer times for any-hit ray sets, and tests check that the two agree."""
+    occluded = np.zeros(rays.count, bool)
+    if rays.count == 0 or scene.triangle_count == 0:
+        return occluded
+    origins, directions = _ray_arrays(rays)
+    escene, _mesh = _build(scene)
+    _run_occluded(escene, origins, directions, _occlusion_tfar(rays), occluded, threads)
+    return occluded
+
+
 def embree_timer(scene: Scene, rays: RaySet, threads: int | None = None):
     """A function that traces the whole ray set with Embree once on this CPU (all usable cores;
     the scene is built and one untimed trace run here, not in the timing) and returns its wall
-    time in seconds: the CPU reference speed. lsbench/running/execute.py calls it between the
+    time in seconds: the CPU reference speed, under the ray set's own query (closest hit, or
+    Embree's occlusion query for "any"). lsbench/running/execute.py calls it between the
     device's timed launches, so both figures of a case's ratio are taken under the same load."""
     import time
 
@@ -225,11 +270,17 @@ def embree_timer(scene: Scene, rays: RaySet, threads: int | None = None):
     escene, mesh = _build(scene)
     prim_ids = np.empty(rays.count, np.int32)
     t = np.empty(rays.count, np.float32)
+    any_hit = getattr(rays, "query", "closest") == "any"
+    tfar = _occlusion_tfar(rays) if any_hit else None
+    occluded = np.empty(rays.count, bool)
 
     def trace_seconds() -> float:
         _ = mesh  # the geometry object lives as long as its scene
         t0 = time.perf_counter()
-        _run_threads(escene, origins, directions, prim_ids, t, threads)
+        if any_hit:
+            _run_occluded(escene, origins, directions, tfar, occluded, threads)
+        else:
+            _run_threads(escene, origins, directions, prim_ids, t, threads)
         return time.perf_counter() - t0
 
     trace_seconds()  # warm-up: first-touch page faults, thread start

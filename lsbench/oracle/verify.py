@@ -22,9 +22,10 @@ defaults to 1e-5 * scene_extent (the scene bounding-box diagonal) when that is g
 re-evaluates each in float64 and says which of them float32 or Embree explain.
 
 Any-hit query (query="any": shadow and ambient-occlusion rays, per-ray `tmax`): the answer is
-only whether something lies in [tmin, tmax). embreex's OCCLUDED query is broken (it returns -1
-for hits), so Embree's answer is derived from its closest hit: occluded iff it hits at t < tmax
-(its t is already >= tmin, oracle/embree.py). A ray whose occluded flag is the same agrees
+only whether something lies in [tmin, tmax). Embree's answer is derived from its cached closest
+hit: occluded iff it hits at t < tmax (its t is already >= tmin, oracle/embree.py), so one cache
+file serves either query; Embree's own occlusion query (embree_any_hit, the one its any-hit speed
+is timed with) gives the same flags (tests/test_workloads.py). A ray whose occluded flag is the same agrees
 (`agree`), whichever primitive either side names; the backend occluded and Embree not is `extra`,
 the reverse `missed`; such a disagreement is a `tie` when the hit it hangs on (the backend's for
 `extra`, Embree's for `missed`) lies within the distance tolerance of tmin or tmax, where either
@@ -134,7 +135,7 @@ def _categories(p, t, r, tr, rel_tol: float, abs_tol: float, query: str = "close
 
 
 def embree_occluded(ref_prim_ids, ref_distances, tmax) -> np.ndarray:
-    """Embree's any-hit answer from its closest hit (OCCLUDED is broken in embreex): a hit
+    """Embree's any-hit answer from its cached closest hit (oracle/embree.py): a hit
     before tmax. Its closest hit already lies at or past tmin (oracle/embree.py)."""
     r = _prim_array(ref_prim_ids)
     return (r >= 0) & (np.asarray(ref_distances, np.float64) < _tmax_array(tmax, r.shape[0]))

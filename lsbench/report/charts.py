@@ -1,7 +1,8 @@
-"""The report's charts (matplotlib, no pyplot: no global state, no display needed): speed
-against accuracy with its Pareto front, build time against memory, the spread of the timing
-repeats. Each chart function takes the records of one scene and writes one PNG, or returns None
-when no record has what it plots."""
+"""The report's charts (matplotlib, no pyplot: no global state, no display needed): rays/s per
+case of one workload against Embree's, rays/s against memory and speed against accuracy (each
+with its Pareto front), build time against memory, the spread of the timing repeats. Each chart
+function takes the records of one group (a scene, a workload) and writes one SVG (what the page
+shows: sharp at any zoom) and a PNG beside it, or returns None when no record has what it plots."""
 from __future__ import annotations
 
 import math
@@ -12,7 +13,7 @@ import numpy as np
 
 from lsbench.backends.structures import display_order
 from lsbench.report.format import fmt_si
-from lsbench.report.records import case_label, resolution_label, resolution_order, succeeded
+from lsbench.report.records import case_label, resolution_label, resolution_order, scene_name, succeeded
 
 STRUCTURE_COLORS = {
     "grid": "#1f77b4", "svo": "#ff7f0e", "esvo": "#2ca02c",
@@ -37,15 +38,22 @@ def _figure(w=8.0, h=5.0):
     return fig
 
 
-def _save(fig, path: Path):
+def _save(fig, path: Path) -> Path:
+    """path.svg and path.png; returns the SVG's path."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, bbox_inches="tight")
-    return path
+    svg = path.with_suffix(".svg")
+    import matplotlib
+
+    # text stays text (searchable, selectable, smaller); no date: same run, same file
+    with matplotlib.rc_context({"svg.fonttype": "none"}):
+        fig.savefig(svg, bbox_inches="tight", metadata={"Date": None})
+    fig.savefig(path.with_suffix(".png"), bbox_inches="tight")
+    return svg
 
 
 def pareto_front(points):
-    """Indices of the points not dominated when minimizing x (disagreement) and maximizing y
-    (rays/s); sorted by x."""
+    """Indices of the points not dominated when minimizing x (disagreement, memory) and
+    maximizing y (rays/s); sorted by x."""
     order = sorted(range(len(points)), key=lambda i: (points[i][0], -points[i][1]))
     front, best = [], -math.inf
     for i in order:
@@ -82,37 +90,44 @@ def _legend_handles(structures, backends):
     return h
 
 
-def chart_speed_accuracy(records, path: Path, title: str):
-    recs = [r for r in records if succeeded(r) and r.get("rays_per_second") and r.get("agreement") is not None]
-    if not recs:
-        return None
-    xs = np.array([max(0.0, 1.0 - float(r["agreement"])) for r in recs])
-    ys = np.array([float(r["rays_per_second"]) for r in recs])
-    fig = _figure(9, 5.5)
-    ax = fig.add_subplot(1, 1, 1)
-    for r, x, y in zip(recs, xs, ys):
-        ax.scatter([x], [y], color=structure_color(r.get("structure")), s=36, zorder=3,
-                   marker=BACKEND_MARKERS.get(r.get("backend"), "^"), edgecolors="k", linewidths=0.4)
-    front = pareto_front(list(zip(xs, ys)))
+PER_MILLION = 1e6
+
+
+def disagreements_per_million(rec) -> float:
+    """Rays that disagree with Embree (missed, extra, wrong, distance; ties agree) per million."""
+    n = rec.get("ray_count") or 0
+    bad = sum(int(rec.get(k) or 0) for k in ("missed", "extra", "wrong", "distance"))
+    return PER_MILLION * bad / n if n else 0.0
+
+
+def _front_line(ax, xs, ys, front, labels, right):
+    """The Pareto front as a step line, its points ringed and labelled."""
     fx, fy = xs[front], ys[front]
-    # step line through the front: each point is the fastest at its disagreement or better
-    ax.step(np.append(fx, max(xs.max(), fx[-1]) * 1.5 + 1e-9), np.append(fy, fy[-1]),
-            where="post", color="crimson", lw=1.2, zorder=2, label="Pareto front")
+    # each front point is the fastest at its x or better
+    ax.step(np.append(fx, right), np.append(fy, fy[-1]), where="post", color="crimson", lw=1.2, zorder=2,
+            label="Pareto front")
     ax.scatter(fx, fy, s=140, facecolors="none", edgecolors="crimson", linewidths=1.5, zorder=4)
     for k, i in enumerate(front):
-        ax.annotate(case_label(recs[i]), (xs[i], ys[i]), textcoords="offset points",
+        ax.annotate(labels[i], (xs[i], ys[i]), textcoords="offset points",
                     xytext=(6, 6 if k % 2 == 0 else -12), fontsize=7, color="crimson")
-    # Embree on the CPU, same rays: the reference every structure is checked against
+
+
+def _embree_line(ax, recs):
+    """Embree on the CPU, same rays: the reference every structure is checked against."""
     emb = [float(r["embree_rays_per_second"]) for r in recs if r.get("embree_rays_per_second")]
     if emb:
         ax.axhline(float(np.median(emb)), color="#444", ls="--", lw=1, zorder=1,
                    label=f"Embree (CPU) {fmt_si(float(np.median(emb)), 'rays/s')}")
-    nz = xs[xs > 0]
-    linthresh = float(min(nz.min() / 2, 1e-6)) if len(nz) else 1e-6
-    ax.set_xscale("symlog", linthresh=linthresh)
-    ax.set_xlim(left=-linthresh * 0.3, right=max(10 * linthresh, float(xs.max()) * 3))
+
+
+def _cases_scatter(ax, recs, xs, ys):
+    for r, x, y in zip(recs, xs, ys):
+        ax.scatter([x], [y], color=structure_color(r.get("structure")), s=36, zorder=3,
+                   marker=BACKEND_MARKERS.get(r.get("backend"), "^"), edgecolors="k", linewidths=0.4)
+
+
+def _finish(ax, recs, title):
     ax.set_yscale("log")
-    ax.set_xlabel(f"disagreement with Embree, 1 − agreement (symlog, linear below {linthresh:.0e})")
     ax.set_ylabel("rays/s (log)")
     ax.yaxis.set_major_formatter(_si_formatter())
     ax.yaxis.set_minor_formatter(_si_formatter())
@@ -120,9 +135,111 @@ def chart_speed_accuracy(records, path: Path, title: str):
     ax.grid(True, which="both", alpha=0.3)
     structures = sorted({r.get("structure") for r in recs}, key=display_order)
     backends = sorted({r.get("backend") for r in recs})
-    handles = _legend_handles(structures, backends)
-    handles += ax.get_legend_handles_labels()[0]
+    handles = _legend_handles(structures, backends) + ax.get_legend_handles_labels()[0]
     ax.legend(handles=handles, fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+
+
+def chart_speed_accuracy(records, path: Path, title: str):
+    """x: disagreements per million rays (0, then log: one in a million and a thousand in a
+    million are different findings), unexplained ones crossed out in red. When every case
+    agrees on every ray, x is the largest distance error against Embree instead (|t - t_Embree|,
+    the precision a structure's traversal keeps), and the chart says so and ranks the speeds."""
+    recs = [r for r in records if succeeded(r) and r.get("rays_per_second") and r.get("agreement") is not None]
+    if not recs:
+        return None
+    xs = np.array([disagreements_per_million(r) for r in recs])
+    ys = np.array([float(r["rays_per_second"]) for r in recs])
+    all_agree = not xs.any()
+    linthresh, xlabel = 1.0, "rays that disagree with Embree per million (0, then log; ties agree)"
+    if all_agree:
+        dts = np.array([float(r.get("max_abs_dt") or 0.0) for r in recs])
+        if dts.any():
+            xs = dts
+            linthresh = float(dts[dts > 0].min()) / 2
+            xlabel = (f"largest |t − t_Embree| of the case (scene units; 0, then log from {linthresh:.1g}): "
+                      "every ray agrees, so this is the accuracy left")
+    fig = _figure(9, 5.5)
+    ax = fig.add_subplot(1, 1, 1)
+    _cases_scatter(ax, recs, xs, ys)
+    bad = [i for i, r in enumerate(recs) if (r.get("unexplained") or 0) > 0]
+    if bad:
+        ax.scatter(xs[bad], ys[bad], marker="x", s=90, color="red", zorder=5, label="unexplained disagreements")
+    right = max(10 * linthresh, float(xs.max()) * 3)
+    _front_line(ax, xs, ys, pareto_front(list(zip(xs, ys))), [case_label(r) for r in recs], right)
+    _embree_line(ax, recs)
+    ax.set_xscale("symlog", linthresh=linthresh)
+    ax.set_xlim(left=-0.3 * linthresh, right=right)
+    ax.set_xlabel(xlabel, fontsize=8 if all_agree else 10)
+    if all_agree:
+        best, slow = int(np.argmax(ys)), int(np.argmin(ys))
+        ax.text(0.98, 0.04, f"all {len(recs)} cases agree with Embree on every ray;\n{case_label(recs[best])} "
+                f"is fastest, {ys[best] / ys[slow]:.3g}× the slowest ({case_label(recs[slow])})",
+                transform=ax.transAxes, ha="right", va="bottom", fontsize=8,
+                bbox={"facecolor": "white", "edgecolor": "#999", "alpha": 0.9})
+    _finish(ax, recs, title)
+    return _save(fig, path)
+
+
+def chart_rays_memory(records, path: Path, title: str):
+    """rays/s against the structure's memory (log-log), the Pareto front (no other case is
+    faster with less memory) labelled by structure, resolution and N: the trade-off of the Line
+    Space structures, which buy speed with 20-80x the memory."""
+    recs = [r for r in records if succeeded(r) and r.get("rays_per_second") and r.get("memory_bytes")]
+    if not recs:
+        return None
+    xs = np.array([r["memory_bytes"] / 2 ** 20 for r in recs])
+    ys = np.array([float(r["rays_per_second"]) for r in recs])
+    fig = _figure(9, 5.5)
+    ax = fig.add_subplot(1, 1, 1)
+    _cases_scatter(ax, recs, xs, ys)
+    _front_line(ax, xs, ys, pareto_front(list(zip(xs, ys))), [case_label(r) for r in recs], float(xs.max()) * 2)
+    _embree_line(ax, recs)
+    ax.set_xscale("log")
+    ax.set_xlabel("memory of the structure (MiB, log)")
+    ax.xaxis.set_major_formatter(_plain_formatter())
+    ax.xaxis.set_minor_formatter(_plain_formatter())
+    _finish(ax, recs, title)
+    return _save(fig, path)
+
+
+def chart_workload(records, path: Path, title: str):
+    """One workload: rays/s of every case as bars, one panel per scene, Embree's rays/s on the
+    same rays as the dashed reference line."""
+    recs = [r for r in records if succeeded(r) and r.get("rays_per_second")]
+    if not recs:
+        return None
+    scenes = sorted({scene_name(r) for r in recs})
+    sizes = [sum(scene_name(r) == s for r in recs) for s in scenes]
+    fig = _figure(9, 1.0 + sum(0.24 * n + 0.9 for n in sizes))
+    fig.set_layout_engine("constrained")  # panel titles, tick labels and the title never overlap
+    axes = fig.subplots(len(scenes), 1, squeeze=False, gridspec_kw={"height_ratios": sizes})[:, 0]
+    for ax, scene in zip(axes, scenes):
+        rs = sorted((r for r in recs if scene_name(r) == scene),
+                    key=lambda r: (display_order(r.get("structure")), r.get("ls_n") or 0,
+                                   resolution_order(r.get("resolution")), r.get("backend", "")))
+        ys = np.arange(len(rs))
+        speeds = [r["rays_per_second"] for r in rs]
+        # linear from 0: a bar's length is its speed (a log axis would make lengths meaningless)
+        ax.barh(ys, speeds, color=[structure_color(r.get("structure")) for r in rs],
+                edgecolor=["k" if r.get("backend") == "opencl" else "none" for r in rs], height=0.7)
+        for y, v in zip(ys, speeds):
+            ax.annotate(fmt_si(v), (v, y), xytext=(3, 0), textcoords="offset points", va="center", fontsize=6)
+        ax.set_yticks(ys)
+        ax.set_yticklabels([case_label(r) for r in rs], fontsize=7)
+        ax.invert_yaxis()
+        emb = [float(r["embree_rays_per_second"]) for r in rs if r.get("embree_rays_per_second")]
+        if emb:
+            ax.axvline(float(np.median(emb)), color="#444", ls="--", lw=1.2,
+                       label=f"Embree (CPU) {fmt_si(float(np.median(emb)), 'rays/s')}")
+            ax.legend(fontsize=7, loc="lower right")
+        from matplotlib.ticker import FuncFormatter
+
+        ax.set_xlim(0, max(speeds + emb) * 1.12)
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: fmt_si(x) if x else "0"))
+        ax.grid(True, axis="x", alpha=0.3)
+        ax.set_title(f"{scene} — {rs[0].get('ray_count')} rays", fontsize=9, loc="left")
+    axes[-1].set_xlabel("rays/s (black edge: opencl)")
+    fig.suptitle(title, fontsize=10)
     return _save(fig, path)
 
 

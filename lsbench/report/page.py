@@ -1,9 +1,13 @@
-"""Static HTML report of one run: index.html + PNG charts, opens from disk (no network, no JS).
+"""Static HTML report of one run: index.html + SVG charts (PNG beside them) + CSV and LaTeX of
+every table, opens from disk (no network, no JS).
 
-Sections follow the thesis' (Delgado Krämer 2019) evaluation (chapter 6): the environment, Tables 1-3
-(lsbench/report/tables.py), speed against accuracy, build time against memory and the spread of
-the timing repeats (lsbench/report/charts.py), the heatmap gallery (images named in the records'
-`heatmaps`), every case in detail (counts, buffers, counters), and the full text of every failure.
+Results first, environment last (issue 18): one section per ray workload (a table of rays/s per
+structure with Embree's rays/s on the same rays as each scene's reference row, and a chart;
+issue 14), the thesis' (Delgado Krämer 2019, chapter 6) Tables 1-3 (lsbench/report/tables.py),
+rays/s against memory and against accuracy with their Pareto fronts, image accuracy (ΔE),
+build time against memory and the spread of the timing repeats (lsbench/report/charts.py), the
+heatmaps (lsbench/report/images.py), every case in detail, the full text of every failure, and
+the environment. A `compare.html` in the run folder (`lsbench compare --report`) is linked.
 """
 from __future__ import annotations
 
@@ -13,14 +17,17 @@ import shutil
 from collections import OrderedDict
 from pathlib import Path
 
-from lsbench.report.charts import chart_build_memory, chart_repeats, chart_speed_accuracy
+from lsbench.report.charts import (chart_build_memory, chart_rays_memory, chart_repeats,
+                                   chart_speed_accuracy, chart_workload)
+from lsbench.report.export import write_exports
 from lsbench.report.format import fmt_mib, fmt_num, fmt_pct, fmt_seconds, fmt_si, slug
+from lsbench.report.history_page import history_link
+from lsbench.report.images import Files, heatmap_section, image_accuracy_section
 from lsbench.report.records import case_label, label_scenes, resolution_label, scene_name, succeeded
-from lsbench.report.tables import thesis_tables
+from lsbench.report.tables import (Baselines, is_camera, one_per_build, table_html, thesis_tables, workload_label,
+                                   workload_tables)
 from lsbench.results.store import (format_commit, read_run, run_devices, run_settings,
                                    scenario_name)
-
-BROWSER_IMAGES = {".png", ".jpg", ".jpeg", ".gif", ".svg", ".webp"}
 
 e = html.escape
 
@@ -70,37 +77,6 @@ def _environment(info, records) -> list[str]:
     return out
 
 
-def _gallery(records, run_dir: Path, out_dir: Path) -> list[str]:
-    out = ["<h2 id='heatmaps'>Heatmaps</h2>"]
-    items = [(r, name, rel) for r in records for name, rel in (r.get("heatmaps") or {}).items()]
-    if not items:
-        out.append("<p class='small'>No heatmaps in this run (they are written by profiling runs "
-                   "with work counters).</p>")
-        return out
-    same = run_dir.resolve() == out_dir.resolve()
-    out.append("<div class='gallery'>")
-    for r, name, rel in items:
-        src = run_dir / rel
-        if not src.exists():
-            out.append(f"<figure class='missing'><div>missing: {e(str(rel))}</div>"
-                       f"<figcaption>{e(case_label(r, True))}<br>{e(name)}</figcaption></figure>")
-            continue
-        if same:
-            href = Path(rel).as_posix()
-        else:  # copy so the report folder stands alone
-            dest = out_dir / "heatmaps" / slug(rel)
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(src, dest)
-            href = dest.relative_to(out_dir).as_posix()
-        if src.suffix.lower() in BROWSER_IMAGES:
-            body = f"<a href='{e(href)}'><img src='{e(href)}' alt='{e(name)}' loading='lazy'></a>"
-        else:
-            body = f"<div><a href='{e(href)}'>{e(src.name)}</a> (open in an image viewer)</div>"
-        out.append(f"<figure>{body}<figcaption>{e(case_label(r, True))}<br>{e(name)}</figcaption></figure>")
-    out.append("</div>")
-    return out
-
-
 DETAIL_COLS = [
     ("scene", scene_name), ("rays", lambda r: r.get("rays", "")),
     ("structure", lambda r: r.get("structure", "")), ("backend", lambda r: r.get("backend", "")),
@@ -119,6 +95,9 @@ DETAIL_COLS = [
     ("rays/s", lambda r: fmt_si(r.get("rays_per_second"))),
     ("FPS", lambda r: fmt_num(r.get("fps"))),
     ("MiB", lambda r: fmt_mib(r.get("memory_bytes"))),
+    ("ΔE mean/max", lambda r: (f"{r['image_delta_e_mean']:.3g}/{r['image_delta_e_max']:.3g}"
+                               if r.get("image_delta_e_max") is not None else "-")),
+    ("ΔE>2.3 px", lambda r: r.get("image_jnd_pixels") if r.get("image_jnd_pixels") is not None else "-"),
 ]
 
 
@@ -161,6 +140,15 @@ table.kv td{max-width:900px}
 td.fail,tr.fail td{background:#fbd5d5;color:#8a1010;text-align:left;max-width:260px;font-size:12px}
 td.warn,tr.warn td{background:#fff1c7}
 td.na{color:#aaa;text-align:center}
+td.best{background:#dff3df}
+tr.ref th,tr.ref td{background:#eef2f8;text-align:center}
+p.exports{font-size:12px;margin:-.6em 0 1em}
+img.row{max-width:100%;border:1px solid #eee}
+.pair{display:flex;gap:4px}
+.hrow figure,.hrow figure img{width:180px}
+details.hm summary{font-weight:bold;margin:.6em 0;cursor:pointer}
+.pair figure{width:160px}
+.pair figure img{width:160px}
 .small{font-size:11px;color:#555}
 .warn{background:#fff3cd;border:1px solid #e0c060;padding:.4em .8em}
 pre{margin:0;font-size:11px;white-space:pre-wrap}
@@ -170,6 +158,8 @@ figure{margin:0;width:260px;font-size:11px}
 figure img{width:260px;image-rendering:pixelated;border:1px solid #ccc}
 figure.missing div{height:80px;background:#eee;display:flex;align-items:center;justify-content:center}
 img.chart{max-width:100%;border:1px solid #eee;margin:.3em 0}
+figure.chart{width:auto;max-width:100%}
+figure.chart img{width:auto;max-width:100%;image-rendering:auto;border:1px solid #eee}
 table.detail{font-size:11px}
 table.detail td{white-space:nowrap}
 table.detail tr.fail td{max-width:none}
@@ -200,16 +190,21 @@ def min_agreement(info: dict) -> float | None:
     return OLD_RUN_MIN_AGREEMENT
 
 
+
 def _chart_section(groups: dict, chart, charts_dir: Path, out_dir: Path, name: str) -> list[str]:
-    """One chart per group of records ({(scene, ...): records}), or a line saying none had data."""
+    """One chart per group of records ({(scene, ...): records}), or a line saying none had data.
+    The page shows the SVG and links the PNG beside it."""
     out = []
     for group, recs in groups.items():
         parts = group if isinstance(group, tuple) else (group,)
-        title = parts[0] + "".join(f" — rays '{p}'" for p in parts[1:])
+        title = " — ".join(str(p) for p in parts)
         path = chart(recs, charts_dir / f"{name}_{slug(*parts)}.png", title)
         if path:
-            out.append(f"<img class='chart' src='{e(path.relative_to(out_dir).as_posix())}' "
-                       f"alt='{e(name.replace('_', ' '))} {e(parts[0])}'>")
+            svg = path.relative_to(out_dir).as_posix()
+            png = path.with_suffix(".png").relative_to(out_dir).as_posix()
+            out.append(f"<figure class='chart'><img class='chart' src='{e(svg)}' alt='{e(name.replace('_', ' '))} "
+                       f"{e(title)}'><figcaption class='small'><a href='{e(svg)}'>SVG</a> · "
+                       f"<a href='{e(png)}'>PNG</a></figcaption></figure>")
     return out or ["<p class='small'>No successful case to plot.</p>"]
 
 
@@ -220,10 +215,56 @@ def _grouped(records, key_fn) -> dict:
     return groups
 
 
+def _tables(tables, out_dir: Path, empty_text: str) -> list[str]:
+    """Tables side by side, each with its CSV and LaTeX beside the page."""
+    if not tables:
+        return [f"<p class='small'>{e(empty_text)}</p>"]
+    out = ["<div class='side'>"]
+    for t in tables:
+        links = " · ".join(f"<a href='{e(rel)}'>{kind}</a>" for kind, rel in write_exports(t, out_dir).items())
+        out.append(f"<div><h3>{e(t.caption)}</h3>{table_html(t)}<p class='exports'>{links}</p></div>")
+    out.append("</div>")
+    return out
+
+
+def _workload_sections(records, baselines, min_agree, charts_dir: Path, out_dir: Path) -> tuple[list[str], list]:
+    """One section per workload (ray set and query); returns the HTML and the nav entries."""
+    out, nav = [], []
+    camera_first = sorted(_grouped(records, workload_label).items(),
+                          key=lambda kv: (not is_camera(kv[1][0]), kv[0]))
+    for i, (workload, recs) in enumerate(camera_first):
+        anchor = f"workload{i + 1}"
+        stem = slug(anchor, recs[0].get("rays", ""))
+        nav.append((anchor, workload))
+        scenes = sorted({scene_name(r) for r in recs})
+        counts = sorted({str(r.get("ray_count")) for r in recs if r.get("ray_count")})
+        out.append(f"<h2 id='{anchor}'>Workload: {e(workload)}</h2>")
+        out.append(f"<p>{len(recs)} cases on {e(', '.join(scenes))} ({e(', '.join(counts))} rays). "
+                   "Rays/s per structure (median of the timed repeats; ×E = against Embree on the same "
+                   f"rays, ×grid = against grid on the same rays and backend; ★ fastest in its row); each "
+                   "scene's last row is Embree's rays/s on the same rays, the reference.</p>")
+        out += _chart_section({(workload,): recs}, chart_workload, charts_dir, out_dir, stem)
+        out += _tables(workload_tables(recs, baselines, min_agree, stem), out_dir,
+                       "No case of this workload.")
+    return out, nav
+
+
+def _compare_link(run_dir: Path, out_dir: Path) -> str:
+    """compare.html of this run (lsbench compare BASE RUN --report), copied beside the page."""
+    src = run_dir / "compare.html"
+    if not src.is_file():
+        return ""
+    if run_dir.resolve() != out_dir.resolve():
+        shutil.copy2(src, out_dir / "compare.html")
+    return ("<p class='warn'>This run was compared with a base run: <a href='compare.html'>compare.html</a> "
+            "(cases sorted by severity).</p>")
+
+
 def write_report(run_dir, out_dir=None) -> Path:
-    """Write OUT_DIR/index.html (default OUT_DIR = RUN_DIR) with charts under OUT_DIR/charts/.
-    Returns the path of index.html. FileNotFoundError when RUN_DIR is no folder, EmptyRunError
-    when it holds no record (a page of empty tables would look like a run that did nothing)."""
+    """Write OUT_DIR/index.html (default OUT_DIR = RUN_DIR) with charts under OUT_DIR/charts/ and
+    tables under OUT_DIR/tables/. Returns the path of index.html. FileNotFoundError when RUN_DIR
+    is no folder, EmptyRunError when it holds no record (a page of empty tables would look like a
+    run that did nothing)."""
     run_dir = Path(run_dir)
     info, records = read_run(run_dir)
     if not records:
@@ -233,46 +274,68 @@ def write_report(run_dir, out_dir=None) -> Path:
     out_dir = Path(out_dir) if out_dir else run_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     charts_dir = out_dir / "charts"
-    if charts_dir.exists():  # stale charts of an earlier report of the same run
-        for p in charts_dir.glob("*.png"):
-            p.unlink()
+    for stale in ("charts", "tables", "heatmap_rows"):  # files of an earlier report of the same run
+        if (out_dir / stale).is_dir():
+            for p in (out_dir / stale).iterdir():
+                if p.suffix in (".png", ".svg", ".csv", ".tex"):
+                    p.unlink()
     min_agree = min_agreement(info)
     ok = sum(1 for r in records if succeeded(r))
+    baselines = Baselines(records)
+    by_scene = _grouped(records, scene_name)
+    by_scene_workload = _grouped(records, lambda r: (scene_name(r), workload_label(r)))
+
+    workloads, workload_nav = _workload_sections(records, baselines, min_agree, charts_dir, out_dir)
+    body = list(workloads)
+    for anchor, heading, text, tables in thesis_tables(records, baselines, min_agree):
+        body.append(f"<h2 id='{anchor}'>{e(heading)}</h2><p>{e(text)}</p>")
+        body += _tables(tables, out_dir, "No Line Space cases in this run." if anchor == "table3"
+                        else "No plain-structure cases in this run.")
+
+    body.append("<h2 id='memory'>Speed against memory</h2>")
+    body.append("<p>rays/s against the structure's bytes, one marker per case (colour: structure, "
+                "shape: backend). Ringed and labelled (structure, resolution, N): the Pareto front — "
+                "no other case is faster with less memory. The Line Space structures buy speed with "
+                "memory; this is that trade-off.</p>")
+    body += _chart_section(by_scene_workload, chart_rays_memory, charts_dir, out_dir, "rays_memory")
+
+    body.append("<h2 id='speed'>Speed against accuracy</h2>")
+    body.append("<p>x: rays that disagree with Embree per million (0, then log; red ×: some "
+                "disagreement the float64 classifier cannot explain). Up is faster, left agrees "
+                "better. Ringed and labelled: the Pareto front — no other case is both faster and at "
+                "least as accurate. When every case agrees, the chart says so and ranks them by speed; "
+                "the image accuracy below says whether a disagreement shows.</p>")
+    body += _chart_section(by_scene_workload, chart_speed_accuracy, charts_dir, out_dir, "speed_accuracy")
+
+    files = Files(run_dir, out_dir)
+    body += image_accuracy_section(records, files)
+
+    body.append("<h2 id='build'>Build time against memory</h2>")
+    body += _chart_section(_grouped(one_per_build(records), scene_name), chart_build_memory, charts_dir, out_dir,
+                           "build_memory")
+
+    body.append("<h2 id='repeats'>Spread of the timing repeats</h2>")
+    body.append("<p>Every timed repeat of every case: a wide bar means a noisy measurement "
+                "(compare uses these repeats to tell a real slowdown from noise).</p>")
+    body += _chart_section(by_scene, chart_repeats, charts_dir, out_dir, "repeats")
+
+    body += heatmap_section(records, files, out_dir)
+    body += _details(records, min_agree)
+    body += _environment(info, records)
 
     title = f"lsbench report — {scenario_name(info) or run_dir.name}"
+    nav = [*workload_nav, ("table1", "Table 1 FPS"), ("table2", "Table 2 memory"),
+           ("table3", "Table 3 Line Space"), ("memory", "Speed vs memory"), ("speed", "Speed vs accuracy"),
+           ("image", "Image ΔE"), ("build", "Build vs memory"), ("repeats", "Repeats"),
+           ("heatmaps", "Heatmaps"), ("cases", "All cases"), ("env", "Environment")]
     out = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(str(title))}</title>",
            f"<style>{CSS}</style></head><body>",
            f"<h1>{e(str(title))}</h1>",
            f"<p>{e(str(run_dir))} · {e(str(info.get('date', '')))} · commit "
            f"{e(format_commit(info.get('commit'), info.get('dirty')))} · "
            f"<b>{ok}</b> cases ok, <b>{len(records) - ok}</b> failed</p>",
-           "<nav><a href='#env'>Environment</a><a href='#table1'>Table 1 FPS</a>"
-           "<a href='#table2'>Table 2 memory</a><a href='#table3'>Table 3 Line Space</a>"
-           "<a href='#speed'>Speed vs accuracy</a><a href='#build'>Build vs memory</a>"
-           "<a href='#repeats'>Repeats</a><a href='#heatmaps'>Heatmaps</a>"
-           "<a href='#cases'>All cases</a></nav>"]
-    out += _environment(info, records)
-    out += thesis_tables(records, min_agree)
-    by_scene = _grouped(records, scene_name)
-
-    out.append("<h2 id='speed'>Speed against accuracy</h2>")
-    out.append("<p>One marker per case (colour: structure, shape: backend). Up is faster, left "
-               "agrees better with Embree (0 = every ray agrees). Ringed and labelled: the Pareto "
-               "front — no other case is both faster and at least as accurate.</p>")
-    out += _chart_section(_grouped(records, lambda r: (scene_name(r), str(r.get("rays", "")))),
-                          chart_speed_accuracy, charts_dir, out_dir, "speed_accuracy")
-
-    out.append("<h2 id='build'>Build time against memory</h2>")
-    out += _chart_section(by_scene, chart_build_memory, charts_dir, out_dir, "build_memory")
-
-    out.append("<h2 id='repeats'>Spread of the timing repeats</h2>")
-    out.append("<p>Every timed repeat of every case: a wide bar means a noisy measurement "
-               "(compare uses these repeats to tell a real slowdown from noise).</p>")
-    out += _chart_section(by_scene, chart_repeats, charts_dir, out_dir, "repeats")
-
-    out += _gallery(records, run_dir, out_dir)
-    out += _details(records, min_agree)
-    out.append("</body></html>")
+           "<nav>" + "".join(f"<a href='#{a}'>{e(t)}</a>" for a, t in nav) + "</nav>",
+           _compare_link(run_dir, out_dir), *history_link(info, out_dir), *body, "</body></html>"]
     index = out_dir / "index.html"
     index.write_text("\n".join(out))
     return index

@@ -75,6 +75,7 @@ class Record:
     trace_seconds_max: float | None = None
     trace_cv: float | None = None
     clock: str | None = None
+    trace_slices: int | None = None
     rays_per_second: float | None = None
     fps: float | None = None
     embree_trace_seconds: float | None = None
@@ -84,6 +85,10 @@ class Record:
     linespace_lookups_per_ray: float | None = None
     work_counters_error: str | None = None
     heatmaps: dict = field(default_factory=dict)
+    image_delta_e_mean: float | None = None  # lsbench/oracle/image.py
+    image_delta_e_max: float | None = None
+    image_jnd_pixels: int | None = None
+    image_files: dict = field(default_factory=dict)
     work_clock: dict | None = None
     wall_seconds: float | None = None
     schema_version: int = SCHEMA_VERSION

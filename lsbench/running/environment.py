@@ -16,7 +16,8 @@ from lsbench.paths import source_checkout
 
 # Packages whose versions change measured numbers or accuracy (kernel compilers, Embree,
 # mesh loading); recorded with every run so two runs can be told apart.
-TRACKED_PACKAGES = ("numpy", "trimesh", "embreex", "moderngl", "pyopencl", "matplotlib")
+TRACKED_PACKAGES = ("numpy", "trimesh", "embreex", "moderngl", "pyopencl", "matplotlib",
+                    "colour-science")  # colour-science: the image ΔE (oracle/image.py)
 
 def git_state(repo_dir=".") -> tuple[str | None, bool | None]:
     """(commit sha, dirty) of the work tree at repo_dir; (None, None) outside a git repository.

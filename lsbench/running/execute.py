@@ -104,6 +104,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
         hits = backends.trace(built, rays)
+        rec.update(trace_slices=hits.slices)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
         rec.accuracy, rec.classification = judge_hits(scene, rays, hits.prim_ids, hits.distances,
                                                       ref_prim, ref_t, rel_tol=settings.rel_tol)
@@ -137,6 +138,10 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
 
             rec.update(heatmaps=profile.write_heatmaps(built, rays, heatmap_dir, case.key),
                        work_clock=profile.clock_info(device))
+        from lsbench.oracle.image import image_accuracy  # ΔE of the shaded picture (camera rays only)
+
+        rec.update(**image_accuracy(scene, rays, hits.prim_ids, hits.distances, ref_prim, ref_t,
+                                    rec.accuracy, heatmap_dir, case.key))
         rec.update(status="ok", reason="")
     except (DeviceLimitError, DeviceError, ValueError, MemoryError) as exc:
         rec.update(status="failed", reason=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..device import Device, DeviceBuffer, as_float4, as_int4
-from ..kernels import KernelSpec, WORK_BUFFER
+from ..kernels import SLICE_BUFFER, SLICE_UNIFORMS, WORK_BUFFER, KernelSpec
 
 # Overlap epsilon of the conservative voxelization, in voxel units: a triangle within this
 # distance of a voxel counts as overlapping it, so float32 rounding never drops a pair.
@@ -121,6 +121,7 @@ class Hits:
     prim_ids: np.ndarray  # int32, -1 = miss
     distances: np.ndarray  # float32, inf for a miss
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
+    slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
 
 
 QUERIES = ("closest", "any")
@@ -142,3 +143,11 @@ def with_work_counters(spec: KernelSpec, device: Device | None = None) -> Kernel
     clock = device.clock_defines() if device is not None else ()
     return dataclasses.replace(spec, buffers=spec.buffers + (WORK_BUFFER,),
                                defines=spec.defines + (("COUNT_WORK", "1"),) + clock)
+
+
+def sliced(spec: KernelSpec) -> KernelSpec:
+    """The variant of a traversal kernel that runs in bounded slices (the same KERNEL_<name>, the
+    same walk): SLICED compiled in, the slice state buffer and the budget bound
+    (shaders/common/trace.h; backends/__init__.py: trace)."""
+    return dataclasses.replace(spec, buffers=spec.buffers + (SLICE_BUFFER,), uniforms=spec.uniforms + SLICE_UNIFORMS,
+                               defines=spec.defines + (("SLICED", "1"),))

@@ -38,8 +38,20 @@ INLINE int3 esvo_leaf_cell(float3 pos, float edge, uint mirror, float res) {
                      I32(floor((z - 1.0f) * res + 0.5f)));
 }
 
+// The walk's loop state in the slice words (trace.h): the parent's descriptor index, the cell's
+// mirrored slot and scale, its mirrored corner and the walked stretch (t_min, t_max). The stack
+// is not saved: the entry of scale S holds the node of the cell's ancestor at scale S + 1's
+// children and the t_max the walk had at scale S, the ray's t_max cut by the exits of the
+// ancestors above. The resumed walk computes both again from the root along the corner's bits with
+// the walk's own arithmetic (corners are exact binary fractions), so it pops exactly as one launch.
+INLINE Trace esvo_suspend(Trace tr, uint parent, uint idx, int scale, float3 pos, float t_min, float t_max) {
+    tr.wa = make_uint4(parent, idx | (U32(scale) << 8), as_uint(pos.x), as_uint(pos.y));
+    tr.wb = make_uint4(as_uint(pos.z), as_uint(t_min), as_uint(t_max), 0u);
+    return tr;
+}
+
 INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
-    Trace tr = trace_start(ray);
+    Trace tr = trace_start(CTX_ARG ray, id);
     float3 o = ray.o;
     float3 d = ray.d;
     GridRay gr = make_grid_ray(CTX_ARG o, d);  // esvo-ls' Line Space lookup only
@@ -72,10 +84,6 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     if (dd.z > 0.0f) { mirror ^= 4u; tz_bias = 3.0f * tz_coef - tz_bias; }
     float t_min = max(max(2.0f * tx_coef - tx_bias, 2.0f * ty_coef - ty_bias), 2.0f * tz_coef - tz_bias);
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
-    // h (below) starts at the cube's exit, before the ray's own tmax shortens t_max (as in LK10):
-    // started at a finite tmax (shadow, AO rays), PUSH would skip the stack entry of a parent the
-    // ray does not leave before tmax, and the walk, which goes on past tmax, would POP into it.
-    float t_cube_exit = t_max;
     t_min = max(t_min, ray.tmin * dlen);
     t_max = min(t_max, ray.tmax * dlen);
     float t_end = t_max;  // nothing past the ray's end can be hit: the walk stops there
@@ -85,7 +93,6 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
         uint stack_node[OCT_DEPTH];
         float stack_tmax[OCT_DEPTH];
         int leaf_scale = ESVO_SMAX - OCT_DEPTH;
-        float h = t_cube_exit;
         uint parent = 0u;  // descriptor index of the node whose children are walked
         uint desc = 0u;  // its descriptor; 0 = fetch again
         uint idx = 0u;  // mirrored slot of the current cell
@@ -95,8 +102,33 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
         if (1.5f * tx_coef - tx_bias > t_min) { idx ^= 1u; pos.x = 1.5f; }
         if (1.5f * ty_coef - ty_bias > t_min) { idx ^= 2u; pos.y = 1.5f; }
         if (1.5f * tz_coef - tz_bias > t_min) { idx ^= 4u; pos.z = 1.5f; }
+        if (tr.resumed != 0) {  // an earlier slice stopped here (esvo_suspend)
+            float t_top = t_max;  // the t_max of the root's children
+            parent = tr.wa.x;
+            idx = tr.wa.y & 0xffu;
+            scale = I32(tr.wa.y >> 8);
+            pos = make_float3(as_float(tr.wa.z), as_float(tr.wa.w), as_float(tr.wb.x));
+            t_min = as_float(tr.wb.y);
+            t_max = as_float(tr.wb.z);
+            scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
+            uint node = 0u;
+            for (int sc = ESVO_SMAX - 1; sc > scale; --sc) {
+                stack_node[sc - leaf_scale - 1] = node;
+                stack_tmax[sc - leaf_scale - 1] = t_top;
+                // The ancestor at scale sc: the corner rounded down to that scale (as POP does).
+                uint ax = as_uint(pos.x) >> U32(sc), ay = as_uint(pos.y) >> U32(sc), az = as_uint(pos.z) >> U32(sc);
+                float cx = as_float(ax << U32(sc)) * tx_coef - tx_bias;
+                float cy = as_float(ay << U32(sc)) * ty_coef - ty_bias;
+                float cz = as_float(az << U32(sc)) * tz_coef - tz_bias;
+                t_top = min(t_top, min(min(cx, cy), cz));
+                uint d_anc = V(esvo_nodes)[node];
+                uint a_slot = ((ax & 1u) | ((ay & 1u) << 1) | ((az & 1u) << 2)) ^ mirror;
+                node = (d_anc >> 8) + oct_rank_in_word(d_anc & 0xffu, a_slot);
+            }
+        }
         while (scale < ESVO_SMAX) {
-            tr.iterations += 1u;
+            tr = trace_tick(tr);
+            if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
             if (desc == 0u) desc = V(esvo_nodes)[parent];
             float tx_corner = pos.x * tx_coef - tx_bias;
             float ty_corner = pos.y * ty_coef - ty_bias;
@@ -116,15 +148,16 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                         float t_exit = tc_max / dlen;
                         tr = oct_test_leaf(CTX_ARG tr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
                                            make_float2(t_min / dlen, t_exit));
+                        if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
                         if (trace_done(tr, t_exit) != 0) break;
                     } else {
-                        // PUSH: remember the parent unless the ray leaves it together with
-                        // this child (then no POP can land here).
-                        if (tc_max < h) {
-                            stack_node[scale - leaf_scale - 1] = parent;
-                            stack_tmax[scale - leaf_scale - 1] = t_max;
-                        }
-                        h = tc_max;
+                        // PUSH: remember the parent. (LK10 skips the write when the ray leaves
+                        // the parent together with this child, so no POP can land there; in
+                        // float32 a ray along an edge can still pop into that scale and read an
+                        // older subtree's entry. Written always, the stack holds exactly the
+                        // ancestors of the current cell, which a resumed slice recomputes.)
+                        stack_node[scale - leaf_scale - 1] = parent;
+                        stack_tmax[scale - leaf_scale - 1] = t_max;
                         parent = child;
                         idx = 0u;
                         scale -= 1;
@@ -166,7 +199,6 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                 pos.y = as_float(shy << U32(scale));
                 pos.z = as_float(shz << U32(scale));
                 idx = (shx & 1u) | ((shy & 1u) << 1) | ((shz & 1u) << 2);
-                h = 0.0f;
                 desc = 0u;
             }
         }
@@ -174,7 +206,8 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     return trace_finish(CTX_ARG tr, id);
 }
 
-INLINE void trace_esvo_kernel(CTX_PARAM uint ray) {
+INLINE void trace_esvo_kernel(CTX_PARAM uint gid) {
+    uint ray = trace_ray(CTX_ARG gid);
     store_hit(CTX_ARG ray, trace_esvo(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
 #endif  // esvo traversal

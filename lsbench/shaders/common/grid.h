@@ -108,8 +108,17 @@ INLINE Candidates grid_voxel(CTX_PARAM GridRay g, GridStep s) {
     return c;
 }
 
+// The walk's loop state in the slice words (trace.h): the voxel about to be visited, its entry,
+// and the next boundary on each axis (the incremental values themselves, so the resumed walk
+// steps exactly as one launch would).
+INLINE Trace grid_suspend(Trace tr, GridStep s, float nx, float ny, float nz) {
+    tr.wa = make_uint4(U32(s.cell.x), U32(s.cell.y), U32(s.cell.z), U32(s.axis_in));
+    tr.wb = make_uint4(as_uint(s.t_in), as_uint(nx), as_uint(ny), as_uint(nz));
+    return tr;
+}
+
 INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
-    Trace tr = trace_start(ray);
+    Trace tr = trace_start(CTX_ARG ray, id);
     GridRay g = make_grid_ray(CTX_ARG ray.o, ray.d);
     int3 r = V(grid_res).xyz;
     float2 span = grid_span(g, ray, make_float3(F32(r.x), F32(r.y), F32(r.z)));
@@ -132,11 +141,21 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
         float qz = g.d.z == 0.0f ? -INF_F : (F32(s.cell.z + (sz > 0 ? 0 : 1)) - g.o.z) * g.inv.z;
         s.axis_in = (qx >= qy && qx >= qz) ? 0 : (qy >= qz ? 1 : 2);
         s.t_in = max(qx, max(qy, qz));
+        if (tr.resumed != 0) {  // an earlier slice stopped here (grid_suspend)
+            s.cell = make_int3(I32(tr.wa.x), I32(tr.wa.y), I32(tr.wa.z));
+            s.axis_in = I32(tr.wa.w);
+            s.t_in = as_float(tr.wb.x);
+            nx = as_float(tr.wb.y);
+            ny = as_float(tr.wb.z);
+            nz = as_float(tr.wb.w);
+        }
         for (;;) {
-            tr.iterations += 1u;
+            tr = trace_tick(tr);
+            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s, nx, ny, nz); break; }
             s.t_exit = min(nx, min(ny, nz));
             s.axis_out = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
             tr = test_candidates(CTX_ARG tr, grid_voxel(CTX_ARG g, s));
+            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s, nx, ny, nz); break; }
             if (trace_done(tr, s.t_exit) != 0) break;
             if (s.t_exit >= t1) break;
             if (s.axis_out == 0) {
@@ -156,7 +175,8 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
     return trace_finish(CTX_ARG tr, id);
 }
 
-INLINE void trace_grid_kernel(CTX_PARAM uint ray) {
+INLINE void trace_grid_kernel(CTX_PARAM uint gid) {
+    uint ray = trace_ray(CTX_ARG gid);
     store_hit(CTX_ARG ray, trace_grid(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
 #endif  // traversal

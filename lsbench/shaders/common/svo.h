@@ -28,8 +28,16 @@ INLINE void svo_create_kernel(CTX_PARAM uint gid) {
 // and goes up while that neighbour lies outside the parent (lines 23-31: the parent is left
 // through the same face, so the step repeats one level up). Ends at the first hit that lies
 // inside the current leaf, or when the ray leaves the root.
+// The walk's loop state in the slice words (trace.h): the depth and the cell's coordinates at that
+// depth. The stack need not be saved: stack[l] is always the node of the cell's ancestor at
+// depth l, so the resumed walk descends to it again along the cell's bits (integer, exact).
+INLINE Trace svo_suspend(Trace tr, int level, int3 cell) {
+    tr.wa = make_uint4(U32(level), U32(cell.x), U32(cell.y), U32(cell.z));
+    return tr;
+}
+
 INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
-    Trace tr = trace_start(ray);
+    Trace tr = trace_start(CTX_ARG ray, id);
     GridRay gr = make_grid_ray(CTX_ARG ray.o, ray.d);
     float3 og = gr.o;
     float3 dg = gr.d;
@@ -49,8 +57,19 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
         float fs0 = F32(size);
         int3 cell = clamp(make_int3(I32(floor(p.x / fs0)), I32(floor(p.y / fs0)), I32(floor(p.z / fs0))),
                           make_int3(0, 0, 0), make_int3(1, 1, 1));
+        if (tr.resumed != 0) {  // an earlier slice stopped here (svo_suspend)
+            level = I32(tr.wa.x);
+            cell = make_int3(I32(tr.wa.y), I32(tr.wa.z), I32(tr.wa.w));
+            size = res >> level;
+            for (int l = 1; l < level; ++l) {
+                int up = level - l;  // the ancestor at depth l and its slot in stack[l - 1]
+                uint slot = U32((cell.x >> up) & 1) | (U32((cell.y >> up) & 1) << 1) | (U32((cell.z >> up) & 1) << 2);
+                stack[l] = V(svo_nodes)[8u * stack[l - 1] + slot];
+            }
+        }
         for (;;) {
-            tr.iterations += 1u;
+            tr = trace_tick(tr);
+            if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
             float fs = F32(size);
             // Exit distance of the cell on each axis (an axis the ray does not move along never wins).
             float nx = dg.x == 0.0f ? INF_F : (F32(cell.x + (sx > 0 ? 1 : 0)) * fs - og.x) * inv.x;
@@ -64,6 +83,7 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                     // At the last level `cell` is the leaf's voxel, and the walk's stretch in it
                     // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
                     tr = oct_test_leaf(CTX_ARG tr, gr, child - 1u, cell, make_float2(t_exit, t_exit));
+                    if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
                     if (trace_done(tr, t_exit) != 0) break;
                 } else {
                     // Descend (lines 11-18): enter the child octant that holds the entry point.
@@ -105,7 +125,8 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
     return trace_finish(CTX_ARG tr, id);
 }
 
-INLINE void trace_svo_kernel(CTX_PARAM uint ray) {
+INLINE void trace_svo_kernel(CTX_PARAM uint gid) {
+    uint ray = trace_ray(CTX_ARG gid);
     store_hit(CTX_ARG ray, trace_svo(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
 #endif  // svo traversal

@@ -11,6 +11,36 @@
 // query of shadow and ambient-occlusion rays: is anything in [tmin, tmax)? The first hit found
 // ends the candidate loop and the walk, so hit_prim/hit_t name *a* hit in that range, not the
 // closest one; backends/structures/base.py: for_query).
+//
+// ---- Traversal in bounded slices (SLICED builds; issue 14) ------------------------------------
+// llvmpipe ends a shader invocation's loops after 65535 iterations in all (scene.h), and a real
+// GPU has a watchdog: a ray that meets millions of candidates cannot run to its end in one
+// launch. A SLICED kernel runs at most slice_budget loop iterations per ray (walk steps and
+// candidate tests together), stores where the ray stopped, and the host re-dispatches only the
+// unfinished rays (backends/__init__.py: trace) until none is left. The budget is a device
+// property (Device.loop_budget; None = one launch runs whole rays and nothing of this compiles in).
+//
+// The API every walk uses (grid.h, svo.h, esvo.h; a new structure does the same):
+//   kernel entry   uint ray = trace_ray(CTX_ARG gid);  (the slice's compacted ray list, or gid)
+//                  store_hit(CTX_ARG ray, trace_<walk>(CTX_ARG load_ray(CTX_ARG ray), ray));
+//   walk start     Trace tr = trace_start(CTX_ARG ray, id);  tr.resumed != 0: the ray ran in an
+//                  earlier slice; tr.wa / tr.wb hold the 8 words the walk saved, and the walk
+//                  restores its loop state from them instead of starting at the ray's entry.
+//   loop top       tr = trace_tick(tr);  if (TRACE_SUSPENDED(tr)) { save; break; }
+//   after a cell   tr = test_candidates(CTX_ARG tr, c);  if (TRACE_SUSPENDED(tr)) { save; break; }
+//                  (before trace_done: a cell whose list the budget cut must finish first)
+//   save           tr.wa = ...; tr.wb = ...;  the walk's loop state at the top of the iteration
+//                  that did not finish, exactly (no restart from a distance: the resumed walk is
+//                  the same walk, so hits are bit-identical to one launch and no cell is skipped);
+//                  the cell's candidate index is trace.h's (a list longer than the budget resumes
+//                  inside it), as are the best hit and the work counters.
+//   walk end       return trace_finish(CTX_ARG tr, id);
+// Per ray the state is SLICE_WORDS uints in slice_state (the compacted ray list of the slice
+// follows them, at slice_list_base). A suspended ray reports SLICE_PENDING as its hit; a ray
+// whose loops the driver still cut (the budget is per lane, llvmpipe's limit per SIMD group, and
+// lanes diverge) reports LOOP_CUT_PRIM and keeps its state of before the slice, so the host
+// reruns it with a smaller budget; only at a budget of 1 is the cut a failure (the last guard).
+
 
 STRUCT(Ray) { float3 o; float tmin; float3 d; float tmax; };
 
@@ -53,6 +83,22 @@ INLINE Hit cut_hit(CTX_PARAM Hit best) {
     return best;
 }
 
+// Hit id of a ray a SLICED kernel suspended: it runs on in the next slice.
+#define SLICE_PENDING -3
+// Words of slice_state per ray: 0 phase (0 fresh, 1 suspended), 1 candidate index to resume at,
+// 2 best t (bits), 3 best prim, 4-7 work counters (iterations, tests, lookups, clock so far),
+// 8-15 the walk's words (wa, wb).
+#define SLICE_WORDS 16u
+
+// The ray this work item traces: the slice's list entry (SLICED) or the item itself.
+INLINE uint trace_ray(CTX_PARAM uint gid) {
+#ifdef SLICED
+    return V(slice_state)[V(slice_list_base) + gid];
+#else
+    return gid;
+#endif
+}
+
 // Tick source of CLOCK_START()/CLOCK_ELAPSED() (preludes). USE_CLOCK and CLOCK_PTX come from
 // Device.clock_defines (backends/glsl.py, backends/opencl.py) only in COUNT_WORK builds and only
 // where the device has a clock; every other build reads 0, so the counters' clock field is 0.
@@ -73,9 +119,21 @@ INLINE uint clock_now_ptx(void) {
 // The ray prepared for the watertight triangle test, the closest hit so far, and the work
 // counters (iterations of the walk, candidate tests, Line Space lookups, clock at the start),
 // which only COUNT_WORK builds store: the compiler drops them from the timed kernels.
-STRUCT(Trace) { WRay wr; float tmin; Hit best; uint iterations; uint tests; uint lookups; uint clock0; };
+// SLICED builds add the slice's budget left, whether the budget ran out (suspended), the
+// candidate index to resume at in the first cell, whether this ray resumes (resumed), the
+// clock of earlier slices and the walk's saved words (wa, wb); the other builds never read them.
+STRUCT(Trace) {
+    WRay wr; float tmin; Hit best; uint iterations; uint tests; uint lookups; uint clock0;
+    uint budget; int suspended; uint resume; int resumed; uint clock_before; uint4 wa; uint4 wb;
+};
 
-INLINE Trace trace_start(Ray r) {
+#ifdef SLICED
+#define TRACE_SUSPENDED(tr) ((tr).suspended != 0)
+#else
+#define TRACE_SUSPENDED(tr) (0 != 0)
+#endif
+
+INLINE Trace trace_start(CTX_PARAM Ray r, uint ray) {
     Trace tr;
     tr.clock0 = CLOCK_START();
     tr.best = no_hit(r.tmax);
@@ -84,6 +142,45 @@ INLINE Trace trace_start(Ray r) {
     tr.iterations = 0u;
     tr.tests = 0u;
     tr.lookups = 0u;
+    tr.budget = 0u;
+    tr.suspended = 0;
+    tr.resume = 0u;
+    tr.resumed = 0;
+    tr.clock_before = 0u;
+    tr.wa = make_uint4(0u, 0u, 0u, 0u);
+    tr.wb = make_uint4(0u, 0u, 0u, 0u);
+#ifdef SLICED
+    tr.budget = V(slice_budget);
+    uint base = SLICE_WORDS * ray;
+    if (V(slice_state)[base] != 0u) {
+        tr.resumed = 1;
+        tr.resume = V(slice_state)[base + 1u];
+        tr.best.t = as_float(V(slice_state)[base + 2u]);
+        tr.best.prim = I32(V(slice_state)[base + 3u]);
+        tr.iterations = V(slice_state)[base + 4u];
+        tr.tests = V(slice_state)[base + 5u];
+        tr.lookups = V(slice_state)[base + 6u];
+        tr.clock_before = V(slice_state)[base + 7u];
+        tr.wa = make_uint4(V(slice_state)[base + 8u], V(slice_state)[base + 9u], V(slice_state)[base + 10u],
+                           V(slice_state)[base + 11u]);
+        tr.wb = make_uint4(V(slice_state)[base + 12u], V(slice_state)[base + 13u], V(slice_state)[base + 14u],
+                           V(slice_state)[base + 15u]);
+    }
+#endif
+    return tr;
+}
+
+// One step of the walk (a cell or node visited), at the top of the walk's loop: counted, and in a
+// SLICED build paid from the budget; with none left the ray suspends before the step.
+INLINE Trace trace_tick(Trace tr) {
+#ifdef SLICED
+    if (tr.budget == 0u) {
+        tr.suspended = 1;
+        return tr;
+    }
+    tr.budget -= 1u;
+#endif
+    tr.iterations += 1u;
     return tr;
 }
 
@@ -97,11 +194,47 @@ INLINE int trace_done(Trace tr, float t) { return (tr.best.prim >= 0 && tr.best.
 #endif
 
 // The hit to store: the counters written first (COUNT_WORK), then the loop probe (scene.h).
+// SLICED: the probe first, and only an intact invocation stores anything: a suspended ray its
+// state (reporting SLICE_PENDING), a finished one its counters and hit.
 INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
+#ifdef SLICED
+    Hit h = tr.best;
+    if (loops_intact(V(loop_probe)) == 0) {
+        h.prim = LOOP_CUT_PRIM;  // the state of before this slice stands: the host reruns the ray
+        return h;
+    }
+    uint clock = tr.clock_before + CLOCK_ELAPSED(tr.clock0);
+    if (tr.suspended != 0) {
+        uint base = SLICE_WORDS * ray;
+        V(slice_state)[base] = 1u;
+        V(slice_state)[base + 1u] = tr.resume;
+        V(slice_state)[base + 2u] = as_uint(tr.best.t);
+        V(slice_state)[base + 3u] = U32(tr.best.prim);
+        V(slice_state)[base + 4u] = tr.iterations;
+        V(slice_state)[base + 5u] = tr.tests;
+        V(slice_state)[base + 6u] = tr.lookups;
+        V(slice_state)[base + 7u] = clock;
+        V(slice_state)[base + 8u] = tr.wa.x;
+        V(slice_state)[base + 9u] = tr.wa.y;
+        V(slice_state)[base + 10u] = tr.wa.z;
+        V(slice_state)[base + 11u] = tr.wa.w;
+        V(slice_state)[base + 12u] = tr.wb.x;
+        V(slice_state)[base + 13u] = tr.wb.y;
+        V(slice_state)[base + 14u] = tr.wb.z;
+        V(slice_state)[base + 15u] = tr.wb.w;
+        h.prim = SLICE_PENDING;
+        return h;
+    }
+#ifdef COUNT_WORK
+    V(work)[ray] = make_uint4(tr.iterations, tr.tests, tr.lookups, clock);
+#endif
+    return h;
+#else
 #ifdef COUNT_WORK
     V(work)[ray] = make_uint4(tr.iterations, tr.tests, tr.lookups, CLOCK_ELAPSED(tr.clock0));
 #endif
     return cut_hit(CTX_ARG tr.best);
+#endif
 }
 
 // The ray in grid space (scene.h), for walks over cells and for Line Space lookups. voxel_t: one
@@ -166,9 +299,24 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
 // used to be thrown away, so a triangle listed in no later cell was lost when float rounding put
 // its t a hair beyond the exit: strips in the grid's boundary planes, issue 13 item 1.)
 // QUERY_ANY: the loop ends at the first hit in [tmin, tmax) (trace_done then ends the walk).
+// SLICED: each test is paid from the budget; the first cell after a resume starts at the saved
+// index, and a list the budget cuts saves the index of its first untested candidate (the walk's
+// step and lookup of this cell are then uncounted: the resumed walk visits it again).
 INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
-    uint i = c.begin;
+    uint start = c.begin + tr.resume;
+    uint i = start;
+    tr.resume = 0u;
     for (; i < c.end; ++i) {
+#ifdef SLICED
+        if (tr.budget == 0u) {
+            tr.suspended = 1;
+            tr.resume = i - c.begin;
+            tr.iterations -= 1u;
+            tr.lookups -= U32(c.from_shaft);
+            break;
+        }
+        tr.budget -= 1u;
+#endif
 #ifdef LEAF_LINE_SPACE
         uint tri = c.from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
 #else
@@ -181,7 +329,7 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
         if (tr.best.prim >= 0) { ++i; break; }
 #endif
     }
-    tr.tests += i - c.begin;
+    tr.tests += i - start;
     tr.lookups += U32(c.from_shaft);
     return tr;
 }
