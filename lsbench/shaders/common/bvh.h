@@ -622,7 +622,14 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // visited. QUERY_ANY: the first hit ends the walk. Stack: at most 3 entries per level of the path
 // plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
 INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
-    Trace tr = trace_start(ray);
+    Trace tr = trace_start(CTX_ARG ray, id);
+#ifdef SLICED
+    // Bounded slices (trace.h) need a walk that saves its state in 8 words; this walk's state is
+    // its stack, so it does not suspend yet: it runs its rays whole in the first slice (a budget
+    // no ray spends). A ray whose loops llvmpipe still cuts fails the case naming the limit
+    // (backends/__init__.py: _run_slices); a restart trail (Laine 2010) would let it resume.
+    tr.budget = 0xffffffffu;
+#endif
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
     float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
     float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
@@ -634,7 +641,7 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     uint node = 0u;
     int done = 0;
     while (done == 0) {
-        tr.iterations += 1u;
+        tr = trace_tick(tr);
         float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;
         float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;
         float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;
@@ -668,7 +675,8 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     return trace_finish(CTX_ARG tr, id);
 }
 
-INLINE void trace_bvh_kernel(CTX_PARAM uint ray) {
+INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
+    uint ray = trace_ray(CTX_ARG gid);
     store_hit(CTX_ARG ray, trace_bvh(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
 #endif  // traversal
