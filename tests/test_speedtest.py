@@ -87,7 +87,7 @@ def test_speedtest_failed_row_csv(tmp_path):
 
 
 @pytest.mark.parametrize("args,needle", [
-    (("--resolution", "bvh=3"), "'bvh' is not a structure"),
+    (("--resolution", "kdtree=3"), "'kdtree' is not a structure"),
     (("--ls-n", "grid-ls=-1"), "-1 is not"),
     (("--out", "speed.txt"), "does not end in .json or .csv"),
     (("--structures", "grid", "--backends", "vulkan"), "invalid choice: 'vulkan'"),

@@ -181,7 +181,7 @@ def test_scenario_cases_carry_ray_sets_and_parameters(tmp_path):
 
 # --- the any-hit query against Embree, every structure and backend -----------------------------------
 
-STRUCTURES = ["grid", "svo", "esvo", "grid-ls", "svo-ls", "esvo-ls"]
+STRUCTURES = ["grid", "svo", "esvo", "grid-ls", "svo-ls", "esvo-ls", "bvh", "bvh-ls"]
 SCENES = {"cornell": (16, 16), "spheres": (8, 16)}  # scene: (octree resolution, image size)
 
 

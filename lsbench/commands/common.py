@@ -10,7 +10,7 @@ from pathlib import Path
 
 from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
                                    integer, number, ray_param_text, resolve_ray_params, writable_folder)
-from lsbench.inputs.scenario import LS_MIN_CANDIDATES, LS_N, RUN_RULES
+from lsbench.inputs.scenario import LEAF_SIZE, LS_MIN_CANDIDATES, LS_N, RUN_RULES
 
 
 class UsageError(BadValue):
@@ -121,6 +121,8 @@ def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> Non
     p.add_argument("--ls-n", type=LS_N.flag, default=0, help="Line Space patches per face edge")
     p.add_argument("--ls-min-candidates", type=LS_MIN_CANDIDATES.flag, default=0,
                    help="only cells with more candidates get a Line Space")
+    p.add_argument("--leaf-size", type=LEAF_SIZE.flag, default=0,
+                   help="bvh, bvh-ls: most triangles per leaf (0: the structure's default)")
     p.add_argument("--size", type=checked_text(parse_size), default=size,
                    help=f"image size WxH for camera rays (W*H <= {MAX_IMAGE_RAYS})")
     p.add_argument("--rays", default="primary",
@@ -172,7 +174,8 @@ def case_from_args(args, camera=None):
 
     width, height = parse_size(args.size)
     return Case(args.scene, args.structure, args.backend, str(args.resolution), args.ls_n,
-                args.ls_min_candidates, args.rays, width, height, camera, ray_params_from_args(args))
+                args.ls_min_candidates, args.rays, width, height, camera, ray_params_from_args(args),
+                args.leaf_size)
 
 
 def ray_params_from_args(args) -> tuple:

@@ -125,6 +125,16 @@ def one_of(names: Iterable[str], noun: str) -> Rule:
                 lambda v: isinstance(v, str) and v in names, str, names, noun)
 
 
+def leaf_size_rule() -> Rule:
+    """bvh / bvh-ls leaf_size: 0 (the structure's default) or one of the sizes the build takes
+    (backends/structures/bvh.py: LEAF_SIZES)."""
+    from lsbench.backends.structures.bvh import LEAF_SIZES
+
+    allowed = (0,) + tuple(LEAF_SIZES)
+    return Rule("0 (the structure's default) or one of " + ", ".join(map(str, LEAF_SIZES)),
+                lambda v: _is_int(v) and v in allowed, int)
+
+
 FLAG = Rule("true or false", lambda v: isinstance(v, bool))
 TEXT = Rule("a non-empty string", lambda v: isinstance(v, str) and v != "")
 POINT = Rule("3 finite numbers [x, y, z]",

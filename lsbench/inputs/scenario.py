@@ -23,6 +23,7 @@
     resolutions = [64, "64x32x16"]
     ls_n = [0]               # Line Space N (0 = none)
     ls_min_candidates = 0    # or a list: only cells with more candidates get a Line Space
+    leaf_size = [4, 8]       # bvh, bvh-ls: most triangles per leaf (0 = the structure's default)
     rays = ["shadow", "ao"]  # optional: this block's ray sets instead of [run]'s
     ray_params = { samples = 2 }  # optional: their parameters (default: [run]'s when the block
                              # names no rays, else none); every listed set must take each key
@@ -38,7 +39,8 @@ table) is an error with a did-you-mean, as is a value of the wrong TOML type (`r
 `backends = []`, a camera fov of 180). Key by key: width/height/gpu_* integers >= 1 with
 width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; max_unexplained an
 integer >= 0; min_agreement in [0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
-structures, backends, resolutions, ls_n, ls_min_candidates, rays one value or a non-empty list;
+structures, backends, resolutions, ls_n, ls_min_candidates, leaf_size, rays one value or a non-empty list
+(leaf_size 0 or one of 1, 2, 4, ..., 128, 255; bvh and bvh-ls ignore resolutions);
 camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees; ray_params a table whose keys
 the ray set takes, each value by its rule (e.g. samples an integer >= 1, light 3 finite numbers).
 """
@@ -51,8 +53,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from lsbench.inputs.checks import (FLAG, RESOLUTION, TEXT, BadValue, Rule, check_camera, check_image_size,
-                                   check_keys, check_list, integer, number, one_of, resolve_ray_params,
-                                   show_typed)
+                                   check_keys, check_list, integer, leaf_size_rule, number, one_of,
+                                   resolve_ray_params, show_typed)
 from lsbench.inputs.rays import RAY_SETS
 from lsbench.paths import scenes_dir, shipped_scenario
 
@@ -124,6 +126,7 @@ class Case:
     height: int = 64
     camera: tuple | None = None  # ((eye), (target), (up), fov_deg) or None for the scene default
     ray_params: tuple = ()  # sorted (key, value) pairs, defaults filled in (checks.resolve_ray_params)
+    leaf_size: int = 0  # bvh, bvh-ls: most triangles per leaf (0: the structure's default)
 
     @property
     def query(self) -> str:
@@ -139,10 +142,12 @@ class Case:
         from lsbench.backends import BuildParams, structure_info
         from lsbench.backends.structures.base import parse_resolution
 
-        line_space = structure_info(self.structure).line_space
+        info = structure_info(self.structure)
+        line_space = info.line_space
         return BuildParams(resolution=parse_resolution(self.resolution),
                            ls_n=(self.ls_n or 1) if line_space else 0,
-                           ls_min_candidates=self.ls_min_candidates if line_space else 0)
+                           ls_min_candidates=self.ls_min_candidates if line_space else 0,
+                           leaf_size=(self.leaf_size or info.leaf_size) if info.leaf_size else 0)
 
     @property
     def key(self) -> str:
@@ -156,8 +161,10 @@ class Case:
         try:
             params = self.build_params()
             res, n, k = format_resolution(params.resolution), params.ls_n, params.ls_min_candidates
+            leaf = params.leaf_size
         except ValueError:  # a resolution or structure that does not parse: the case fails when run
             res, n, k = self.resolution, self.ls_n, self.ls_min_candidates
+            leaf = self.leaf_size
         rays = input_label(self.rays)
         if self.ray_params:
             rays += "(" + ",".join(f"{k}={_param_text(v)}" for k, v in self.ray_params) + ")"
@@ -165,7 +172,9 @@ class Case:
         if self.camera is not None:
             eye, target, up, fov = self.camera
             rays += "@cam(" + ",".join(_exact(v) for v in (*eye, *target, *up, fov)) + ")"
-        return f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}"
+        # The leaf size only for the structures that have one, so the other cases keep their keys.
+        leaves = f"|l{leaf}" if leaf else ""
+        return f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}{leaves}"
 
     def camera_object(self):
         from lsbench.inputs.scene import Camera
@@ -203,9 +212,11 @@ RUN_RULES: dict[str, Rule] = {
 # What each key of a [[cases]] block allows: one value or a non-empty list of them (camera
 # aside). Structures and backends come from their catalogues, so these are built on use.
 REQUIRED_CASE_KEYS = ("scenes", "structures", "resolutions")
-CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "camera", "rays", "ray_params")
+CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "leaf_size", "camera", "rays",
+             "ray_params")
 LS_N = integer(0)  # 0 = the structure's own default (a Line Space structure builds N = 1)
 LS_MIN_CANDIDATES = integer(0)
+LEAF_SIZE = leaf_size_rule()
 CAMERA_KEYS = ("eye", "target", "up", "fov")
 TOP_KEYS = ("name", "run", "cases")
 
@@ -261,6 +272,7 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
     resolutions = check_list(f"{where}resolutions", block["resolutions"], RESOLUTION)
     ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N)  # N for Line Space structures
     ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES)
+    leaf_sizes = check_list(f"{where}leaf_size", block.get("leaf_size", 0), LEAF_SIZE)  # BVHs only
     camera = _camera(block["camera"], where) if "camera" in block else None
     if "rays" in block:
         ray_sets = check_list(f"{where}rays", block["rays"], RUN_RULES["rays"])
@@ -278,8 +290,9 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
                         line_space = structure_info(s).line_space
                         for n in (ns if line_space else [0]):
                             for k in (ks if line_space else [0]):
-                                cases.append(Case(scene, s, b, str(r), n, k, rays, width, height,
-                                                  camera, ray_params[rays]))
+                                for leaf in (leaf_sizes if structure_info(s).leaf_size else [0]):
+                                    cases.append(Case(scene, s, b, str(r), n, k, rays, width, height,
+                                                      camera, ray_params[rays], leaf))
     return cases
 
 

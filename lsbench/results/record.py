@@ -44,6 +44,7 @@ class Record:
     camera: dict | None = None
     ray_params: dict = field(default_factory=dict)
     query: str = "closest"
+    leaf_size: int = 0
     scene_hash: str | None = None
     triangles: int | None = None
     rays_hash: str | None = None

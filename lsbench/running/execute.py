@@ -25,9 +25,9 @@ def new_record(case: Case, settings: RunSettings, env: dict | None = None, input
     environment.record_env(); inputs: case_inputs() and device fields where already known."""
     try:
         params = case.build_params()
-        resolution, n, k = params.resolution, params.ls_n, params.ls_min_candidates
+        resolution, n, k, leaf = params.resolution, params.ls_n, params.ls_min_candidates, params.leaf_size
     except ValueError:  # a resolution or structure that does not parse: the case fails
-        resolution, n, k = (None, None, None), case.ls_n, case.ls_min_candidates
+        resolution, n, k, leaf = (None, None, None), case.ls_n, case.ls_min_candidates, case.leaf_size
     camera = None
     if case.camera is not None:
         eye, target, up, fov = case.camera
@@ -37,6 +37,7 @@ def new_record(case: Case, settings: RunSettings, env: dict | None = None, input
                  scene_source=case.scene, structure=case.structure, backend=case.backend,
                  resolution=str(case.resolution), resolution_x=resolution[0], resolution_y=resolution[1],
                  resolution_z=resolution[2], ls_n=n, ls_min_candidates=k, rays=case.rays,
+                 leaf_size=leaf,
                  ray_params={key: list(v) if isinstance(v, tuple) else v for key, v in case.ray_params},
                  query=case.query,
                  width=case.width, height=case.height, camera=camera, settings=result_settings(settings))

@@ -3,12 +3,14 @@
 Each entry's `recipe` has prepare(device) (compile what the build uses) and
 build(device, scene_buffers, n_tris, geometry, params) -> BuildResult (base.py), written against
 the Device interface only. A recipe's module docstring names its kernels' headers in
-shaders/common/: grid.h, grid_ls.h, octree.h with svo.h / esvo.h, octree_ls.h, linespace.h."""
+shaders/common/: grid.h, grid_ls.h, octree.h with svo.h / esvo.h, octree_ls.h, linespace.h, bvh.h."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from . import esvo, grid, grid_ls, svo
+from . import bvh, esvo, grid, grid_ls, svo
+from . import bvh_ls as bvh_ls_module
+from .bvh_ls import bvh_ls
 from .octree_ls import esvo_ls, svo_ls
 
 
@@ -19,6 +21,7 @@ class StructureInfo:
     cubic_power_of_two: bool  # octrees: a cubic power-of-two resolution over the bounding cube
     line_space: bool  # takes ls_n / ls_min_candidates
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
+    leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none
 
 
 CATALOGUE: tuple[StructureInfo, ...] = (
@@ -28,6 +31,10 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("grid-ls", grid_ls, False, True, "grid with a Line Space per non-empty voxel (3.3.3, Alg. 2)"),
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
+    StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, treelet restructuring (Fig. 4c baseline)",
+                  bvh.DEFAULT_LEAF_SIZE),
+    StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
+                  bvh_ls_module.DEFAULT_LEAF_SIZE),
 )
 STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
 

@@ -78,6 +78,7 @@ class BuildParams:
     ls_n: int = 0  # Line Space patches per face edge (0 = no Line Space)
     ls_min_candidates: int = 0  # build Line Spaces only in voxels with more candidates than this
     bounding_cube: bool = False  # grid over the bounding cube even where not needed (compare with octrees)
+    leaf_size: int = 0  # bvh, bvh-ls: most triangles per leaf (0 = the structure's default; bvh.LEAF_SIZES)
     options: dict = field(default_factory=dict)
 
 

@@ -36,7 +36,7 @@ INLINE void oct_ls_cells_kernel(CTX_PARAM uint m) {
 }
 #endif
 
-#if defined(KERNEL_trace_svo_ls) || defined(KERNEL_trace_esvo_ls)
+#if defined(KERNEL_trace_svo_ls) || defined(KERNEL_trace_esvo_ls) || defined(KERNEL_trace_bvh_ls)
 // ---- Traversal: the leaf's shaft (Algorithm 3) -----------------------------------------------
 // A leaf with a Line Space gives only the candidates of the shaft that holds the ray's chord
 // through the leaf, looked up from the chord's entry and exit face and patch (linespace.h:

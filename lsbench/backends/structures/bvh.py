@@ -1,0 +1,269 @@
+"""`bvh`: a binary bounding volume hierarchy built on the device, the structure a renderer would
+pick instead of the grids and octrees (the thesis' Fig. 4c baseline). Kernels: shaders/common/bvh.h
+on scene.h and trace.h. All steps run on the device, written once for both backends:
+
+1. Morton codes: a 30-bit code per triangle centroid over the scene bounds (10 bits per axis).
+2. Sort: an LSD radix sort of (code, triangle id), 5 bits per pass, 6 passes; each pass is a
+   per-chunk digit count, Device.exclusive_scan of the digit-major counts, and a stable scatter
+   (bvh.h). The sorted ids are the structure's voxel_tris: every leaf is a range of it.
+3. Hierarchy: Karras 2012 (a binary radix tree over the sorted codes, one work item per inner
+   node, equal codes ordered by position).
+4. Box fit, bottom up with an atomic arrival counter per node (Karras 2012, 4); in the same pass
+   the surface-area heuristic decides which subtrees of at most `leaf_size` triangles become
+   leaves (bvh.h: bvh_fit_kernel).
+5. Quality pass: TREELET_ROUNDS rounds of treelet restructuring (Karras & Aila 2013; treelets of
+   5 leaves, bottom up with the same arrival counters; bvh.h: bvh_restructure_kernel).
+   The SAH cost of the tree after each stage is in the stats: `sah_cost_plain` (the plain LBVH:
+   every node of at most leaf_size triangles a leaf), `sah_cost_collapse` (SAH leaves) and
+   `sah_cost` (as built), so every build measures the gain; the device time of each kernel is in
+   `build_kernel_seconds` (OpenCL). Sponza (262k triangles, leaf size 8, PoCL on 2 shared cores):
+   SAH cost 177 -> 164 -> 102, binary node visits per primary ray 141 -> 69, about +40 % rays/s,
+   for 0.34 s of restructuring (6 rounds; 3 rounds: SAH 107 in 0.15 s). options["bvh_quality"]
+   (QUALITIES) stops after a stage.
+6. Compaction: the inner nodes that stay nodes are flagged (not collapsed into a leaf), those at
+   an even depth head the 4-wide nodes (every odd level is dropped: a node takes its children's
+   children), which are scanned and written in the layout of bvh.h, 128 bytes per node (all four
+   children's boxes side by side in bvh_nodes, 96 bytes; refs and leaf counts in bvh_links, 32),
+   into buffers of exactly that size. Sponza: 4-wide nodes take 40 node visits per primary ray
+   where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
+
+Speed (`lsbench speedtest --structures grid esvo bvh bvh-ls`, Sponza 256² from speedtest.toml's
+interior camera, 2 shared cores, Embree in the same worker; three runs at different loads): bvh
+on PoCL 0.38-0.48x Embree on primary rays and 0.31-0.37x on incoherent ones (esvo 512³ in the
+same runs: 0.33-0.36x, 0.09-0.17x; tinybvh's Aila-Laine kernel on PoCL: 0.62x, 0.54x), on
+llvmpipe 0.06x and 0.10x. Where the time goes: ~35 node visits of 4 box tests
+and ~8 triangle tests per primary ray, in scalar work items (PoCL runs these divergent loops one
+work item at a time, the float4 slab test is its only SIMD); the tree, a Morton-code LBVH even
+after the treelets (SAH cost 102), takes more visits than a binned-SAH build would.
+
+Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
+(32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
+triangle counts, two costs (4 bytes each per node or primitive) and the fitted boxes (32 bytes per
+inner node).
+
+Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
+scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
+per-buffer limit at allocation (llvmpipe 128 MiB: 1.4 M 4-wide nodes of 96 bytes, ~30 M triangles
+for the sort buffers); the traversal's leaf entries address a slot as 4 * node + slot in 31 bits."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..device import Device, DeviceBuffer, DeviceLimitError
+from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform, trace_spec
+from .base import BuildParams, BuildResult, GridGeometry
+
+BVH_HEADERS = ("geometry.h", "scene.h", "bvh.h")
+BVH_HEADERS_NO_SCENE = ("geometry.h", "bvh.h")  # kernels that bind no scene buffers (scene.h reads them)
+BVH_UNIFORMS = GRID_UNIFORMS + (Uniform("bvh_n", "uint"), Uniform("bvh_leaf_size", "uint"),
+                                Uniform("bvh_sah", "uint"), Uniform("bvh_node_count", "uint"))
+SORT_UNIFORMS = BVH_UNIFORMS + (Uniform("sort_shift", "uint"), Uniform("sort_chunk", "uint"),
+                                Uniform("sort_chunks", "uint"))
+SORT_CHUNK = 256  # keys per work item of the sort (a loop of 256 stays far inside llvmpipe's budget)
+SORT_BITS, SORT_DIGITS, MORTON_BITS = 5, 32, 30  # must match shaders/common/bvh.h
+NODE_BYTES = 128  # a 4-wide node: bvh_nodes 96 + bvh_links 32 (shaders/common/bvh.h)
+WIDTH = 4
+LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
+DEFAULT_LEAF_SIZE = 8
+# The quality pass (options["bvh_quality"]): "none" (the plain LBVH: every subtree of at most
+# leaf_size triangles one leaf), "sah" (the SAH decides those leaves), "treelet" (that, then
+# TREELET_ROUNDS rounds of treelet restructuring, Karras & Aila 2013; bvh's default),
+# "plain-treelet" (the plain leaves, then the restructuring; bvh-ls's default).
+QUALITIES = ("none", "sah", "treelet", "plain-treelet")
+TREELET_ROUNDS = 6
+MAX_TRIANGLES = 2**31 - 1
+
+MORTON = KernelSpec("bvh_morton", BVH_HEADERS, "bvh_morton_kernel",
+                    SCENE_BUFFERS + (Buf("sort_keys", "uint", "w"), Buf("sort_ids", "uint", "w")), BVH_UNIFORMS)
+SORT_COUNT = KernelSpec("bvh_sort_count", BVH_HEADERS_NO_SCENE, "bvh_sort_count_kernel",
+                        (Buf("sort_keys", "uint", "r"), Buf("sort_counts", "uint", "rw")), SORT_UNIFORMS)
+SORT_SCATTER = KernelSpec("bvh_sort_scatter", BVH_HEADERS_NO_SCENE, "bvh_sort_scatter_kernel",
+                          (Buf("sort_keys", "uint", "r"), Buf("sort_ids", "uint", "r"), Buf("sort_counts", "uint", "rw"),
+                           Buf("sorted_keys", "uint", "w"), Buf("sorted_ids", "uint", "w")), SORT_UNIFORMS)
+EMIT = KernelSpec("bvh_emit", BVH_HEADERS_NO_SCENE, "bvh_emit_kernel",
+                  (Buf("bvh_keys", "uint", "r"), Buf("bvh_children", "uint", "w"), Buf("bvh_ranges", "uint", "w"),
+                   Buf("bvh_parents", "uint", "w")), BVH_UNIFORMS)
+FIT = KernelSpec("bvh_fit", BVH_HEADERS, "bvh_fit_kernel",
+                 SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
+                                  Buf("bvh_ranges", "uint", "r"), Buf("bvh_parents", "uint", "r"),
+                                  Buf("bvh_arrivals", "uint", "rw"), Buf("bvh_fit_boxes", "float4", "rw"),
+                                  Buf("bvh_costs", "float", "rw"), Buf("bvh_collapse", "uint", "w"),
+                                  Buf("bvh_counts", "uint", "rw")), BVH_UNIFORMS)
+RESTRUCTURE = KernelSpec("bvh_restructure", BVH_HEADERS, "bvh_restructure_kernel",
+                         SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "rw"),
+                                          Buf("bvh_parents", "uint", "rw"), Buf("bvh_arrivals", "uint", "rw"),
+                                          Buf("bvh_fit_boxes", "float4", "rw"), Buf("bvh_costs", "float", "rw"),
+                                          Buf("bvh_counts", "uint", "rw"), Buf("bvh_cut", "uint", "rw")), BVH_UNIFORMS)
+KEEP = KernelSpec("bvh_keep", BVH_HEADERS_NO_SCENE, "bvh_keep_kernel",
+                  (Buf("bvh_counts", "uint", "r"), Buf("bvh_parents", "uint", "r"), Buf("bvh_collapse", "uint", "r"),
+                   Buf("bvh_keep", "uint", "w")), BVH_UNIFORMS)
+WIDE_FLAGS = KernelSpec("bvh_wide_flags", BVH_HEADERS_NO_SCENE, "bvh_wide_flags_kernel",
+                        (Buf("bvh_keep", "uint", "r"), Buf("bvh_parents", "uint", "r"),
+                         Buf("bvh_wide_flags", "uint", "w"), Buf("bvh_depth", "uint", "rw")), BVH_UNIFORMS)
+WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
+                   SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("bvh_children", "uint", "r"),
+                                    Buf("bvh_ranges", "uint", "r"), Buf("bvh_keep", "uint", "r"),
+                                    Buf("bvh_ids", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
+                                    Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
+BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE)
+
+BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
+TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS, GRID_UNIFORMS)
+
+
+def check_leaf_size(value) -> int:
+    """The most triangles per leaf; one of LEAF_SIZES (0: the default)."""
+    size = int(value) or DEFAULT_LEAF_SIZE
+    if size not in LEAF_SIZES:
+        raise ValueError(f"leaf_size must be one of {', '.join(map(str, LEAF_SIZES))}, got {value!r}")
+    return size
+
+
+def prepare(device: Device) -> None:
+    for spec in BUILD_SPECS:
+        device.compile(spec)
+
+
+def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict
+                        ) -> tuple[DeviceBuffer, DeviceBuffer]:
+    """Build steps 1-2: the Morton codes and the triangle ids sorted by them (keys, ids)."""
+    keys = device.alloc("sort_keys", 4 * n_tris, zero=False)
+    ids = device.alloc("sort_ids", 4 * n_tris, zero=False)
+    out_keys = device.alloc("sorted_keys", 4 * n_tris, zero=False)
+    out_ids = device.alloc("sorted_ids", 4 * n_tris, zero=False)
+    chunks = -(-n_tris // SORT_CHUNK)
+    counts = device.alloc("sort_counts", 4 * SORT_DIGITS * chunks, zero=False)
+    try:
+        device.dispatch(MORTON, n_tris, dict(scene_buffers, sort_keys=keys, sort_ids=ids), uniforms)
+        for shift in range(0, MORTON_BITS, SORT_BITS):
+            u = dict(uniforms, sort_shift=shift, sort_chunk=SORT_CHUNK, sort_chunks=chunks)
+            device.dispatch(SORT_COUNT, chunks, {"sort_keys": keys, "sort_counts": counts}, u)
+            device.scan_in_place(counts, SORT_DIGITS * chunks)
+            device.dispatch(SORT_SCATTER, chunks, {"sort_keys": keys, "sort_ids": ids, "sort_counts": counts,
+                                                   "sorted_keys": out_keys, "sorted_ids": out_ids}, u)
+            keys, ids, out_keys, out_ids = out_keys, out_ids, keys, ids
+    except BaseException:
+        for b in (keys, ids, out_keys, out_ids, counts):
+            device.release(b)
+        raise
+    for b in (out_keys, out_ids, counts):
+        device.release(b)
+    return keys, ids
+
+
+def check_quality(value: str) -> str:
+    if value not in QUALITIES:
+        raise ValueError(f"bvh_quality must be one of {', '.join(QUALITIES)}, got {value!r}")
+    return value
+
+
+def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry, leaf_size: int,
+              quality: str = "treelet") -> tuple[dict[str, DeviceBuffer], dict]:
+    """Build steps 1-5 (module docstring). Returns the structure's buffers (bvh_nodes, bvh_links,
+    voxel_tris) and the build's stats."""
+    sah = check_quality(quality) in ("sah", "treelet")
+    if n_tris > MAX_TRIANGLES:
+        raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
+    if n_tris < 1:
+        raise ValueError("bvh: the scene has no triangles")
+    inner = n_tris - 1
+    u = dict(geometry.uniforms(), bvh_n=n_tris, bvh_leaf_size=leaf_size, bvh_sah=int(sah), bvh_node_count=0)
+    keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
+    temps = [keys]
+    made = [tris]
+    try:
+        def temp(name, nbytes, zero=False):
+            buf = device.alloc(name, nbytes, zero=zero)
+            temps.append(buf)
+            return buf
+
+        children = temp("bvh_children", 8 * inner)
+        ranges = temp("bvh_ranges", 8 * inner)
+        parents = temp("bvh_parents", 4 * (inner + n_tris))
+        boxes = temp("bvh_fit_boxes", 32 * inner)
+        costs = temp("bvh_costs", 8 * inner)
+        collapse = temp("bvh_collapse", 4 * inner)
+        fit_bufs = dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges,
+                        bvh_parents=parents, bvh_fit_boxes=boxes, bvh_costs=costs, bvh_collapse=collapse)
+        counts = temp("bvh_counts", 4 * inner)
+        fit_bufs["bvh_counts"] = counts
+        stats: dict = {"triangles": n_tris, "leaf_size": leaf_size, "quality_pass": quality}
+        if inner > 0:
+            device.dispatch(EMIT, inner, {"bvh_keys": keys, "bvh_children": children, "bvh_ranges": ranges,
+                                          "bvh_parents": parents}, u)
+            temps.remove(keys)
+            device.release(keys)
+            arrivals = temp("bvh_arrivals", 4 * inner, zero=True)
+            device.dispatch(FIT, n_tris, dict(fit_bufs, bvh_arrivals=arrivals), u)
+            root = device.read(boxes, np.float32, 8)
+            root_area = _area(root[:3], root[4:7])
+            cost, plain = (float(c) / root_area if root_area > 0 else 0.0 for c in device.read(costs, np.float32, 2))
+            stats.update(sah_cost=cost, sah_cost_plain=plain, sah_cost_collapse=cost)
+            if quality in ("treelet", "plain-treelet"):
+                cut = temp("bvh_cut", 4, zero=True)
+                for _ in range(TREELET_ROUNDS):
+                    device.fill_zero(arrivals)
+                    device.dispatch(RESTRUCTURE, n_tris, dict(fit_bufs, bvh_arrivals=arrivals, bvh_cut=cut), u)
+                if device.read_uint(cut, 0):
+                    raise device.loop_limit_error("the treelet restructuring's loops (a tree too deep to climb)")
+                stats["sah_cost"] = float(device.read(costs, np.float32, 1)[0]) / root_area if root_area > 0 else 0.0
+            keep = temp("bvh_keep", 4 * inner)
+            device.dispatch(KEEP, inner, {"bvh_counts": counts, "bvh_parents": parents, "bvh_collapse": collapse,
+                                          "bvh_keep": keep}, u)
+            kept_scan, n_binary = device.exclusive_scan(keep, inner, "bvh_kept")
+            device.release(kept_scan)
+            wide = temp("bvh_wide_flags", 4 * inner)
+            depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
+            temps.append(depth_buf)
+            device.dispatch(WIDE_FLAGS, inner, {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide,
+                                                "bvh_depth": depth_buf}, u)
+            ids, n_nodes = device.exclusive_scan(wide, inner, "bvh_ids")
+            temps.append(ids)
+            stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
+        else:
+            stats["sah_cost"] = stats["sah_cost_plain"] = stats["sah_cost_collapse"] = 0.0
+            ids, n_nodes, n_binary, stats["depth"] = temp("bvh_ids", 4, zero=True), 0, 0, 0
+            keep = temp("bvh_keep", 4, zero=True)
+        if WIDTH * n_nodes >= 2**31:
+            raise DeviceLimitError(f"bvh: {n_nodes} nodes overflow the traversal's 31-bit leaf entries "
+                                   "(4 * node + slot)")
+        nodes = device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)
+        made.append(nodes)
+        links = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
+        made.append(links)
+        device.dispatch(WRITE, max(inner, 1) if n_nodes else 1,
+                        dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_keep=keep,
+                             bvh_ids=ids, bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links),
+                        dict(u, bvh_node_count=n_nodes))
+        device.finish()
+    except BaseException:
+        for b in made:
+            device.release(b)
+        raise
+    finally:
+        temp_bytes = sum(b.nbytes for b in temps)
+        for b in temps:
+            device.release(b)
+    stats.update({"nodes": max(n_nodes, 1), "binary_nodes": n_binary, "leaves": n_binary + 1,
+                  "references": n_tris, "node_bytes": NODE_BYTES, "temp_bytes": int(temp_bytes)})
+    return {"bvh_nodes": nodes, "bvh_links": links, "voxel_tris": tris}, stats
+
+
+def _area(lo, hi) -> float:
+    e = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return float(2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0]))
+
+
+def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+          params: BuildParams) -> BuildResult:
+    leaf_size = check_leaf_size(params.leaf_size)
+    buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
+                               quality=params.options.get("bvh_quality", "treelet"))
+    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats), stats)
+
+
+def traversal(spec: KernelSpec, stats: dict) -> KernelSpec:
+    """The trace kernel with its stack sized to the tree: 3 entries per 4-wide level of the deepest
+    path plus one node's 4 (bvh.h: trace_bvh; the treelet restructuring may make a tree deeper than
+    the Karras hierarchy's ~64 levels)."""
+    return spec.with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)

@@ -1,0 +1,682 @@
+// `bvh` and `bvh-ls`: a BVH built on the device (a linear BVH: Morton codes of the
+// triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
+// construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
+// collapse, treelet restructuring after Karras & Aila 2013), made 4-wide, and its stack traversal
+// (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency of ray
+// traversal on GPUs", 4 of them as Embree's BVH4; nearest child first). bvh-ls gives the
+// large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
+// Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
+// writer, Line Space cells, traversal) also scene.h, the traversal trace.h (and for bvh-ls
+// linespace.h and octree_ls.h). The host side: backends/structures/bvh.py.
+//
+// The finished structure is 4-wide (the binary tree with every odd level dropped, builds 7-8): a
+// node holds the boxes of its up to 4 children (slots) side by side, so one float4 operation
+// tests a plane of all four (the layout of Embree's BVH4 and tinybvh's BVH4_GPU), 128 bytes:
+//   bvh_nodes  6 float4 per node: lo.x of slots 0..3, hi.x, lo.y, hi.y, lo.z, hi.z      96 bytes
+//   bvh_links  2 uint4 per node: ref of slots 0..3, then count of slots 0..3. count 0: the slot is
+//              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count);
+//              ref BVH_NONE: an unused slot                                             32 bytes
+//   voxel_tris the triangle ids in Morton order (every leaf a contiguous range of it; trace.h
+//              tests a cell's plain list from this buffer, whatever the structure)
+// Node 0 is the root. A scene of at most leaf-size triangles has one node whose slot 0 is a leaf
+// of all of them.
+
+#define BVH_NONE 0xffffffffu
+#define BVH_PRIM 0x80000000u  // Karras child code: a primitive (sorted position) instead of an inner node
+#ifndef BVH_STACK
+#define BVH_STACK 64  // the traversal's stack: the build compiles it with the tree's depth (bvh.py)
+#endif
+#define BVH_FLT_MAX 3.4028235e38f
+
+#ifdef LANG_GLSL
+#define BVH_CLZ(x) (31 - findMSB(x))
+#else
+#define BVH_CLZ(x) I32(clz(x))
+#endif
+
+STRUCT(Box) { float3 lo; float3 hi; };
+
+INLINE Box box_union(Box a, Box b) {
+    Box u;
+    u.lo = min(a.lo, b.lo);
+    u.hi = max(a.hi, b.hi);
+    return u;
+}
+
+INLINE float box_area(Box b) {
+    float3 e = max(b.hi - b.lo, make_float3(0.0f, 0.0f, 0.0f));
+    return 2.0f * (e.x * e.y + e.y * e.z + e.z * e.x);
+}
+
+#ifdef KERNEL_bvh_morton
+// ---- Build 1: a 30-bit Morton code per triangle centroid (10 bits per axis over the bounds) ----
+// grid space over the scene's bounds (scene.h), divided by grid_res: [0, 1)^3.
+INLINE uint bvh_spread10(uint x) {  // 10 bits -> every third bit
+    x &= 0x3ffu;
+    x = (x | (x << 16)) & 0x030000ffu;
+    x = (x | (x << 8)) & 0x0300f00fu;
+    x = (x | (x << 4)) & 0x030c30c3u;
+    x = (x | (x << 2)) & 0x09249249u;
+    return x;
+}
+
+INLINE void bvh_morton_kernel(CTX_PARAM uint tri) {
+    Triangle t = load_grid_triangle(CTX_ARG tri);
+    float3 res = make_float3(F32(V(grid_res).x), F32(V(grid_res).y), F32(V(grid_res).z));
+    float3 c = (t.a + t.b + t.c) * (1.0f / 3.0f) / res * 1024.0f;
+    uint x = U32(clamp(c.x, 0.0f, 1023.0f));
+    uint y = U32(clamp(c.y, 0.0f, 1023.0f));
+    uint z = U32(clamp(c.z, 0.0f, 1023.0f));
+    V(sort_keys)[tri] = bvh_spread10(x) | (bvh_spread10(y) << 1) | (bvh_spread10(z) << 2);
+    V(sort_ids)[tri] = tri;
+}
+#endif
+
+#if defined(KERNEL_bvh_sort_count) || defined(KERNEL_bvh_sort_scatter)
+// ---- Build 2: LSD radix sort of (code, triangle id), BVH_RADIX bits per pass -----------------
+// Each work item owns a chunk of sort_chunk consecutive keys. Count: the chunk's histogram of the
+// pass's digit into sort_counts[digit * chunks + chunk] (the item owns those entries: no atomics);
+// Device.exclusive_scan of that digit-major array gives every (digit, chunk) its first output
+// slot; scatter: the item walks its chunk in order and writes each key to its digit's next slot.
+// Equal digits keep their order (stable), so the passes from the low to the high digit sort.
+#define BVH_RADIX 5
+#define BVH_DIGITS 32u
+INLINE uint bvh_digit(CTX_PARAM uint key) { return (key >> V(sort_shift)) & (BVH_DIGITS - 1u); }
+#endif
+
+#ifdef KERNEL_bvh_sort_count
+INLINE void bvh_sort_count_kernel(CTX_PARAM uint chunk) {
+    uint chunks = V(sort_chunks);
+    for (uint d = 0u; d < BVH_DIGITS; ++d) V(sort_counts)[d * chunks + chunk] = 0u;
+    uint begin = chunk * V(sort_chunk);
+    uint end = min(begin + V(sort_chunk), V(bvh_n));
+    for (uint i = begin; i < end; ++i) V(sort_counts)[bvh_digit(CTX_ARG V(sort_keys)[i]) * chunks + chunk] += 1u;
+}
+#endif
+
+#ifdef KERNEL_bvh_sort_scatter
+INLINE void bvh_sort_scatter_kernel(CTX_PARAM uint chunk) {
+    uint chunks = V(sort_chunks);
+    uint begin = chunk * V(sort_chunk);
+    uint end = min(begin + V(sort_chunk), V(bvh_n));
+    for (uint i = begin; i < end; ++i) {
+        uint key = V(sort_keys)[i];
+        uint slot = bvh_digit(CTX_ARG key) * chunks + chunk;
+        uint at = V(sort_counts)[slot];
+        V(sort_counts)[slot] = at + 1u;
+        V(sorted_keys)[at] = key;
+        V(sorted_ids)[at] = V(sort_ids)[i];
+    }
+}
+#endif
+
+#ifdef KERNEL_bvh_emit
+// ---- Build 3: the hierarchy (Karras 2012, Fig. 4), one work item per inner node i < n - 1 ----
+// delta(i, j): the common prefix of the sorted codes i and j, the position breaking ties between
+// equal codes (32 + common prefix of i and j), -1 outside [0, n). Node i covers [min(i, j),
+// max(i, j)]; its split gamma is where the prefix of the range ends. Writes the two children
+// (inner node id, or BVH_PRIM | sorted position), the range, and every node's parent
+// (bvh_parents: inner nodes 0..n-2, then the primitives at n-1+k; the root's is BVH_NONE).
+INLINE int bvh_delta(CTX_PARAM int i, int j) {
+    int n = I32(V(bvh_n));
+    if (j < 0 || j >= n) return -1;
+    uint ki = V(bvh_keys)[i];
+    uint kj = V(bvh_keys)[j];
+    if (ki == kj) return 32 + BVH_CLZ(U32(i) ^ U32(j));
+    return BVH_CLZ(ki ^ kj);
+}
+
+INLINE void bvh_emit_kernel(CTX_PARAM uint gid) {
+    int i = I32(gid);
+    int n = I32(V(bvh_n));
+    int d = bvh_delta(CTX_ARG i, i + 1) - bvh_delta(CTX_ARG i, i - 1) > 0 ? 1 : -1;
+    int dmin = bvh_delta(CTX_ARG i, i - d);
+    int lmax = 2;
+    while (bvh_delta(CTX_ARG i, i + lmax * d) > dmin) lmax *= 2;
+    int l = 0;
+    for (int t = lmax / 2; t >= 1; t /= 2)
+        if (bvh_delta(CTX_ARG i, i + (l + t) * d) > dmin) l += t;
+    int j = i + l * d;
+    int dnode = bvh_delta(CTX_ARG i, j);
+    int s = 0;
+    for (int div = 2; ; div *= 2) {
+        int t = (l + div - 1) / div;
+        if (bvh_delta(CTX_ARG i, i + (s + t) * d) > dnode) s += t;
+        if (t <= 1) break;
+    }
+    int gamma = i + s * d + min(d, 0);
+    int first = min(i, j);
+    int last = max(i, j);
+    uint left = first == gamma ? (BVH_PRIM | U32(gamma)) : U32(gamma);
+    uint right = last == gamma + 1 ? (BVH_PRIM | U32(gamma + 1)) : U32(gamma + 1);
+    V(bvh_children)[2u * gid] = left;
+    V(bvh_children)[2u * gid + 1u] = right;
+    V(bvh_ranges)[2u * gid] = U32(first);
+    V(bvh_ranges)[2u * gid + 1u] = U32(last);
+    uint up = U32(n - 1);
+    V(bvh_parents)[(left & BVH_PRIM) != 0u ? up + (left & ~BVH_PRIM) : left] = gid;
+    V(bvh_parents)[(right & BVH_PRIM) != 0u ? up + (right & ~BVH_PRIM) : right] = gid;
+    if (gid == 0u) V(bvh_parents)[0] = BVH_NONE;
+}
+#endif
+
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure)
+// The box of triangle `tri` (world space).
+INLINE Box triangle_box(CTX_PARAM uint tri) {
+    Triangle t = load_triangle(CTX_ARG tri);
+    Box b;
+    b.lo = min(t.a, min(t.b, t.c));
+    b.hi = max(t.a, max(t.b, t.c));
+    return b;
+}
+
+// The box of Karras child code `c`: a primitive's triangle box, or an inner node's fitted box.
+INLINE Box bvh_child_box(CTX_PARAM uint c) {
+    if ((c & BVH_PRIM) != 0u) return triangle_box(CTX_ARG V(voxel_tris)[c & ~BVH_PRIM]);
+    Box b;
+    b.lo = V(bvh_fit_boxes)[2u * c].xyz;
+    b.hi = V(bvh_fit_boxes)[2u * c + 1u].xyz;
+    return b;
+}
+#endif
+
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_restructure)
+#define BVH_COST_NODE 1.2f
+#define BVH_COST_TRI 1.0f
+
+#ifdef LANG_GLSL
+#define BVH_FENCE() memoryBarrierBuffer()
+#else
+#define BVH_FENCE() mem_fence(CLK_GLOBAL_MEM_FENCE)
+#endif
+
+// Cost of child c as decided (plain = 0) or in the plain LBVH (plain = 1).
+INLINE float bvh_child_cost(CTX_PARAM uint c, uint plain) {
+    if ((c & BVH_PRIM) != 0u) return BVH_COST_TRI * box_area(bvh_child_box(CTX_ARG c));
+    return V(bvh_costs)[2u * c + plain];
+}
+
+// Triangles below child code c.
+INLINE uint bvh_child_count(CTX_PARAM uint c) {
+    return (c & BVH_PRIM) != 0u ? 1u : V(bvh_counts)[c];
+}
+
+// Where the parent of child code c is kept (inner nodes first, then the primitives).
+INLINE uint bvh_parent_slot(CTX_PARAM uint c) {
+    return (c & BVH_PRIM) != 0u ? V(bvh_n) - 1u + (c & ~BVH_PRIM) : c;
+}
+#endif
+
+#ifdef KERNEL_bvh_fit
+// ---- Build 4: bottom-up box fit (Karras 2012, 4), one work item per primitive ----------------
+// Each item climbs from its primitive's parent; at every node the first of the two children's
+// items to arrive (atomic counter 0 -> 1) stops, the second one finds both children finished and
+// fits the node. The fence orders a node's box (and cost) before the counter its parent reads.
+// The same pass decides the leaves, the quality pass of this build (bvh_sah = 1): a node of at most
+// bvh_leaf_size triangles becomes a leaf where the surface-area heuristic (MacDonald & Booth 1990;
+// the final step of Karras & Aila 2013) rates testing them all as cheaper than descending,
+// SA(N) * C_i * n <= SA(N) * C_t + cost(L) + cost(R) (costs scaled by the area: cost(N) =
+// SA(N) * expected cost below N; C_t = 1.2, C_i = 1 as Karras & Aila). bvh_sah = 0: every node of at
+// most bvh_leaf_size triangles is a leaf (the plain LBVH). bvh_costs holds 2 floats per inner node,
+// the cost of the tree below it as decided and that of the plain LBVH, so the root's two, divided by
+// its area, are the SAH costs of the tree and of the tree without the quality pass (stats).
+INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
+    uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
+    while (node != BVH_NONE) {
+        BVH_FENCE();
+        if (ATOMIC_ADD(V(bvh_arrivals)[node], 1u) == 0u) return;  // the sibling's item fits it
+        BVH_FENCE();
+        uint l = V(bvh_children)[2u * node];
+        uint r = V(bvh_children)[2u * node + 1u];
+        Box b = box_union(bvh_child_box(CTX_ARG l), bvh_child_box(CTX_ARG r));
+        V(bvh_fit_boxes)[2u * node] = make_float4(b.lo.x, b.lo.y, b.lo.z, 0.0f);
+        V(bvh_fit_boxes)[2u * node + 1u] = make_float4(b.hi.x, b.hi.y, b.hi.z, 0.0f);
+        uint count = V(bvh_ranges)[2u * node + 1u] - V(bvh_ranges)[2u * node] + 1u;
+        float area = box_area(b);
+        float split = BVH_COST_NODE * area + bvh_child_cost(CTX_ARG l, 0u) + bvh_child_cost(CTX_ARG r, 0u);
+        float plain_split = BVH_COST_NODE * area + bvh_child_cost(CTX_ARG l, 1u) + bvh_child_cost(CTX_ARG r, 1u);
+        float leaf = BVH_COST_TRI * F32(count) * area;
+        uint small = count <= V(bvh_leaf_size) ? 1u : 0u;
+        uint collapse = small != 0u && (V(bvh_sah) == 0u || leaf <= split) ? 1u : 0u;
+        V(bvh_collapse)[node] = collapse;
+        V(bvh_counts)[node] = count;
+        V(bvh_costs)[2u * node] = collapse != 0u ? leaf : split;
+        V(bvh_costs)[2u * node + 1u] = small != 0u ? leaf : plain_split;
+        node = V(bvh_parents)[node];
+    }
+}
+#endif
+
+#ifdef KERNEL_bvh_restructure
+// ---- Build 5: treelet restructuring (Karras & Aila 2013, "Fast parallel construction of high-
+// quality bounding volume hierarchies"), one work item per primitive climbing as in the fit -----
+// At every node N of more than bvh_leaf_size triangles, once both its subtrees are done (an
+// arrival counter, as the fit): grow a treelet of up to BVH_TREELET leaves from N's children,
+// always opening the leaf of largest area that is itself such a node; find the topology of those
+// leaves with the least SAH cost by dynamic programming over their subsets (each subset: the best
+// of its 2-part splits); if it is cheaper than the treelet as it is, rebuild the treelet in place
+// with its own inner nodes (boxes, costs, counts, parents). Nodes of at most bvh_leaf_size
+// triangles are never opened nor made, so every leaf the compaction makes is still a contiguous
+// range of voxel_tris. 5 leaves (Karras & Aila use 7): 3^5 = 243 split tests per node keeps a
+// climb to the root inside llvmpipe's loop budget; loops cut short count into bvh_cut.
+#define BVH_TREELET 5
+#define BVH_SUBSETS 32
+
+INLINE Box bvh_subset_box(Box b0, Box b1, Box b2, Box b3, Box b4, uint s) {
+    Box u;
+    u.lo = make_float3(BVH_FLT_MAX, BVH_FLT_MAX, BVH_FLT_MAX);
+    u.hi = make_float3(-BVH_FLT_MAX, -BVH_FLT_MAX, -BVH_FLT_MAX);
+    if ((s & 1u) != 0u) u = box_union(u, b0);
+    if ((s & 2u) != 0u) u = box_union(u, b1);
+    if ((s & 4u) != 0u) u = box_union(u, b2);
+    if ((s & 8u) != 0u) u = box_union(u, b3);
+    if ((s & 16u) != 0u) u = box_union(u, b4);
+    return u;
+}
+
+INLINE void bvh_restructure(CTX_PARAM uint root) {
+    uint leaf_size = V(bvh_leaf_size);
+    uint leaves[BVH_TREELET];
+    uint inner[BVH_TREELET];
+    leaves[0] = V(bvh_children)[2u * root];
+    leaves[1] = V(bvh_children)[2u * root + 1u];
+    inner[0] = root;
+    uint m = 2u;
+    while (m < U32(BVH_TREELET)) {
+        int best = -1;
+        float best_area = -1.0f;
+        for (uint k = 0u; k < m; ++k) {
+            uint c = leaves[k];
+            if ((c & BVH_PRIM) != 0u || V(bvh_counts)[c] <= leaf_size) continue;
+            float a = box_area(bvh_child_box(CTX_ARG c));
+            if (a > best_area) { best_area = a; best = I32(k); }
+        }
+        if (best < 0) break;
+        uint opened = leaves[best];
+        inner[m - 1u] = opened;
+        leaves[best] = V(bvh_children)[2u * opened];
+        leaves[m] = V(bvh_children)[2u * opened + 1u];
+        m += 1u;
+    }
+    if (m < 3u) return;  // two leaves have one topology
+    Box b0 = bvh_child_box(CTX_ARG leaves[0]), b1 = bvh_child_box(CTX_ARG leaves[1]), b2 = bvh_child_box(CTX_ARG leaves[2]);
+    Box b3 = m > 3u ? bvh_child_box(CTX_ARG leaves[3]) : b0;
+    Box b4 = m > 4u ? bvh_child_box(CTX_ARG leaves[4]) : b0;
+    float cost[BVH_SUBSETS];
+    uint split[BVH_SUBSETS];
+    uint full = (1u << m) - 1u;
+    for (uint s = 1u; s <= full; ++s) {
+        split[s] = 0u;
+        if ((s & (s - 1u)) == 0u) {  // one leaf: its own cost
+            uint k = U32(BVH_CLZ(1u)) - U32(BVH_CLZ(s));
+            cost[s] = bvh_child_cost(CTX_ARG leaves[k], 0u);
+            continue;
+        }
+        float best = BVH_FLT_MAX;
+        for (uint p = (s - 1u) & s; p != 0u; p = (p - 1u) & s) {
+            float c = cost[p] + cost[s ^ p];
+            if (c < best) { best = c; split[s] = p; }
+        }
+        cost[s] = BVH_COST_NODE * box_area(bvh_subset_box(b0, b1, b2, b3, b4, s)) + best;
+    }
+    if (!(cost[full] < V(bvh_costs)[2u * root] * 0.9999f)) return;  // no better topology
+    // Rebuild top-down from the root, handing out the treelet's inner nodes in order.
+    uint todo_set[BVH_TREELET];
+    uint todo_node[BVH_TREELET];
+    int top = 0;
+    todo_set[0] = full;
+    todo_node[0] = root;
+    uint next_inner = 1u;
+    while (top >= 0) {
+        uint s = todo_set[top];
+        uint id = todo_node[top];
+        top -= 1;
+        uint parts[2];
+        parts[0] = split[s];
+        parts[1] = s ^ split[s];
+        uint count = 0u;
+        for (uint h = 0u; h < 2u; ++h) {
+            uint q = parts[h];
+            uint code;
+            if ((q & (q - 1u)) == 0u) {
+                code = leaves[U32(BVH_CLZ(1u)) - U32(BVH_CLZ(q))];
+            } else {
+                code = inner[next_inner];
+                next_inner += 1u;
+                top += 1;
+                todo_set[top] = q;
+                todo_node[top] = code;
+            }
+            V(bvh_children)[2u * id + h] = code;
+            V(bvh_parents)[bvh_parent_slot(CTX_ARG code)] = id;
+        }
+        for (uint k = 0u; k < m; ++k)
+            if (((s >> k) & 1u) != 0u) count += bvh_child_count(CTX_ARG leaves[k]);
+        Box b = bvh_subset_box(b0, b1, b2, b3, b4, s);
+        V(bvh_fit_boxes)[2u * id] = make_float4(b.lo.x, b.lo.y, b.lo.z, 0.0f);
+        V(bvh_fit_boxes)[2u * id + 1u] = make_float4(b.hi.x, b.hi.y, b.hi.z, 0.0f);
+        V(bvh_costs)[2u * id] = cost[s];
+        V(bvh_counts)[id] = count;
+    }
+}
+
+INLINE void bvh_restructure_kernel(CTX_PARAM uint prim) {
+    uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
+    while (node != BVH_NONE) {
+        BVH_FENCE();
+        if (ATOMIC_ADD(V(bvh_arrivals)[node], 1u) == 0u) return;
+        BVH_FENCE();
+        if (V(bvh_counts)[node] > V(bvh_leaf_size)) bvh_restructure(CTX_ARG node);
+        node = V(bvh_parents)[node];
+    }
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // scene.h: the driver cut loops
+}
+#endif
+
+#ifdef KERNEL_bvh_keep
+// ---- Build 6: which inner nodes stay nodes: not collapsed, no collapsed ancestor -------------
+// Only nodes of at most bvh_leaf_size triangles collapse, so the climb ends at the first ancestor
+// with more (counts grow towards the root).
+INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
+    uint keep = V(bvh_collapse)[node] != 0u ? 0u : 1u;
+    uint p = V(bvh_parents)[node];
+    while (keep != 0u && p != BVH_NONE && V(bvh_counts)[p] <= V(bvh_leaf_size)) {
+        if (V(bvh_collapse)[p] != 0u) keep = 0u;
+        p = V(bvh_parents)[p];
+    }
+    V(bvh_keep)[node] = keep;
+}
+#endif
+
+#ifdef KERNEL_bvh_wide_flags
+// ---- Build 7: which kept nodes head a 4-wide node: those at an even depth ------------------
+// The binary tree becomes 4-wide by dropping every odd level: a node at an even depth takes its
+// children, and where a child is a kept inner node (odd depth) that child's two children instead
+// (up to 4 slots). Depth: the kept ancestors (every ancestor of a kept node is kept); the deepest
+// is ~bvh_depth[0] (the atomics have a min, not a max), for the traversal's stack size.
+INLINE void bvh_wide_flags_kernel(CTX_PARAM uint node) {
+    uint flag = 0u;
+    if (V(bvh_keep)[node] != 0u) {
+        uint depth = 0u;
+        for (uint p = V(bvh_parents)[node]; p != BVH_NONE; p = V(bvh_parents)[p]) depth += 1u;
+        ATOMIC_MIN(V(bvh_depth)[0], ~depth);
+        flag = (depth & 1u) == 0u ? 1u : 0u;
+    }
+    V(bvh_wide_flags)[node] = flag;
+}
+#endif
+
+#ifdef KERNEL_bvh_write
+// ---- Build 8: the final 4-wide nodes, one work item per inner node ---------------------------
+// bvh_ids: exclusive scan of bvh_wide_flags (node i heads wide node bvh_ids[i] iff
+// bvh_ids[i + 1] > bvh_ids[i]; the root stays 0). A slot holding a wide node links it by its id;
+// any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris;
+// unused slots hold ref BVH_NONE (and a zero box, never tested).
+STRUCT(WideChild) { Box b; uint ref; uint count; };
+
+INLINE WideChild bvh_leaf_or_node(CTX_PARAM uint c) {  // a slot's child: Karras code c, not expanded
+    WideChild w;
+    w.b = bvh_child_box(CTX_ARG c);
+    if ((c & BVH_PRIM) != 0u) {
+        w.ref = c & ~BVH_PRIM;
+        w.count = 1u;
+    } else if (V(bvh_keep)[c] != 0u) {
+        w.ref = V(bvh_ids)[c];  // a kept node at an even depth: a wide node
+        w.count = 0u;
+    } else {
+        w.ref = V(bvh_ranges)[2u * c];
+        w.count = V(bvh_ranges)[2u * c + 1u] - w.ref + 1u;
+    }
+    return w;
+}
+
+INLINE uint bvh_opens(CTX_PARAM uint c) {  // 1: child c is a kept inner node whose children take its place
+    return ((c & BVH_PRIM) == 0u && V(bvh_keep)[c] != 0u) ? 1u : 0u;
+}
+
+// Slot k of the wide node headed by `node`.
+INLINE WideChild bvh_wide_child(CTX_PARAM uint node, uint k) {
+    uint c0 = V(bvh_children)[2u * node];
+    uint c1 = V(bvh_children)[2u * node + 1u];
+    uint n0 = 1u + bvh_opens(CTX_ARG c0);
+    uint n1 = 1u + bvh_opens(CTX_ARG c1);
+    uint c = k < n0 ? c0 : c1;
+    uint j = k < n0 ? k : k - n0;
+    WideChild w;
+    if (k >= n0 + n1) {
+        w.b.lo = make_float3(0.0f, 0.0f, 0.0f);
+        w.b.hi = w.b.lo;
+        w.ref = BVH_NONE;
+        w.count = 0u;
+        return w;
+    }
+    if (bvh_opens(CTX_ARG c) != 0u) return bvh_leaf_or_node(CTX_ARG V(bvh_children)[2u * c + j]);
+    return bvh_leaf_or_node(CTX_ARG c);
+}
+
+INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChild c, WideChild d) {
+    V(bvh_nodes)[6u * id] = make_float4(a.b.lo.x, b.b.lo.x, c.b.lo.x, d.b.lo.x);
+    V(bvh_nodes)[6u * id + 1u] = make_float4(a.b.hi.x, b.b.hi.x, c.b.hi.x, d.b.hi.x);
+    V(bvh_nodes)[6u * id + 2u] = make_float4(a.b.lo.y, b.b.lo.y, c.b.lo.y, d.b.lo.y);
+    V(bvh_nodes)[6u * id + 3u] = make_float4(a.b.hi.y, b.b.hi.y, c.b.hi.y, d.b.hi.y);
+    V(bvh_nodes)[6u * id + 4u] = make_float4(a.b.lo.z, b.b.lo.z, c.b.lo.z, d.b.lo.z);
+    V(bvh_nodes)[6u * id + 5u] = make_float4(a.b.hi.z, b.b.hi.z, c.b.hi.z, d.b.hi.z);
+    V(bvh_links)[2u * id] = make_uint4(a.ref, b.ref, c.ref, d.ref);
+    V(bvh_links)[2u * id + 1u] = make_uint4(a.count, b.count, c.count, d.count);
+}
+
+INLINE void bvh_write_kernel(CTX_PARAM uint node) {
+    if (V(bvh_node_count) == 0u) {
+        // No node kept (n <= leaf size): one node, slot 0 a leaf of everything, the others none.
+        WideChild all;
+        all.b = V(bvh_n) == 1u ? bvh_child_box(CTX_ARG BVH_PRIM) : bvh_child_box(CTX_ARG 0u);
+        all.ref = 0u;
+        all.count = V(bvh_n);
+        WideChild none = all;
+        none.ref = BVH_NONE;
+        none.count = 0u;
+        bvh_store_node(CTX_ARG 0u, all, none, none, none);
+        return;
+    }
+    uint id = V(bvh_ids)[node];
+    if (V(bvh_ids)[node + 1u] == id) return;
+    bvh_store_node(CTX_ARG id, bvh_wide_child(CTX_ARG node, 0u), bvh_wide_child(CTX_ARG node, 1u),
+                   bvh_wide_child(CTX_ARG node, 2u), bvh_wide_child(CTX_ARG node, 3u));
+}
+#endif
+
+#if defined(KERNEL_bvh_ls_flags) || defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
+INLINE uint comp4u(uint4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
+INLINE float comp4(float4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
+#endif
+
+#if defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh_ls)
+// ---- bvh-ls: a Line Space per large leaf ------------------------------------------------------
+// Cells are the child slots, 4 per node (cell = 4 * node + slot): a slot that is a leaf of more
+// than ls_min_count triangles gets a Line Space (ls_ids: exclusive scan of those flags, trace.h's
+// cell_line_space). Its box, the leaf's box with every side at least BVH_LS_MIN_SIDE of its longest
+// (a flat leaf, a wall, still has a cell-local space whose unit faces the float32 patch lookup can
+// tell apart), is the cell the Line Space is built over (grid space) and the traversal looks the
+// ray's chord up in (world space, the same box).
+#define BVH_LS_MIN_SIDE 0.05f
+INLINE Box bvh_ls_box(Box b) {
+    float3 e = b.hi - b.lo;
+    float m = max(e.x, max(e.y, e.z));
+    float3 pad = max(make_float3(BVH_LS_MIN_SIDE * m, BVH_LS_MIN_SIDE * m, BVH_LS_MIN_SIDE * m) - e,
+                     make_float3(0.0f, 0.0f, 0.0f)) * 0.5f;
+    float3 tiny = make_float3(1e-30f, 1e-30f, 1e-30f) + 1e-6f * max(fabs(b.lo), fabs(b.hi));
+    Box padded;
+    padded.lo = b.lo - pad - tiny;
+    padded.hi = b.hi + pad + tiny;
+    return padded;
+}
+
+// The box of slot `slot` of node `node` (bvh_nodes layout above).
+INLINE Box bvh_slot_box(CTX_PARAM uint node, uint slot) {
+    Box b;
+    b.lo = make_float3(comp4(V(bvh_nodes)[6u * node], slot), comp4(V(bvh_nodes)[6u * node + 2u], slot),
+                       comp4(V(bvh_nodes)[6u * node + 4u], slot));
+    b.hi = make_float3(comp4(V(bvh_nodes)[6u * node + 1u], slot), comp4(V(bvh_nodes)[6u * node + 3u], slot),
+                       comp4(V(bvh_nodes)[6u * node + 5u], slot));
+    return b;
+}
+#endif
+
+#ifdef KERNEL_bvh_ls_flags
+INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
+    uint count = comp4u(V(bvh_links)[2u * (cell >> 2) + 1u], cell & 3u);
+    V(ls_flags)[cell] = count > V(ls_min_count) ? 1u : 0u;
+}
+#endif
+
+#ifdef KERNEL_bvh_ls_cells
+INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
+    uint c = V(ls_ids)[cell];
+    if (V(ls_ids)[cell + 1u] == c) return;
+    uint node = cell >> 2;
+    uint slot = cell & 3u;
+    uint first = comp4u(V(bvh_links)[2u * node], slot);
+    uint count = comp4u(V(bvh_links)[2u * node + 1u], slot);
+    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
+    float3 lo = to_grid(CTX_ARG b.lo);
+    float3 hi = to_grid(CTX_ARG b.hi);
+    V(ls_cell_boxes)[2u * c] = make_float4(lo.x, lo.y, lo.z, 0.0f);
+    V(ls_cell_boxes)[2u * c + 1u] = make_float4(hi.x, hi.y, hi.z, 0.0f);
+    V(ls_cell_ranges)[2u * c] = first;
+    V(ls_cell_ranges)[2u * c + 1u] = first + count;
+}
+#endif
+
+#if defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
+// ---- Traversal ----------------------------------------------------------------------------------
+// World space. The slab test of a node's 4 slots at once (float4 lanes, the layout's point); a
+// zero direction component gets 1/d = FLT_MAX instead of infinity (0 * inf would be NaN for an
+// origin in a slab's plane; the build's boxes are exact float min/max, so only a ray in a
+// triangle's own plane meets a plane exactly, and then it grazes). t_far is widened by 2 gamma(3)
+// (Ize 2013, pbrt's robust slab test), so float rounding never loses a box the ray touches.
+STRUCT(BvhRay) { float3 o; float3 inv; };
+
+INLINE float bvh_rcp(float x) {
+    if (x == 0.0f) return BVH_FLT_MAX;
+    float r = 1.0f / x;
+    return clamp(r, -BVH_FLT_MAX, BVH_FLT_MAX);
+}
+
+#define BVH_WIDEN 1.0000007f
+#define BVH_LEAF 0x80000000u  // a stack entry: a leaf, by its cell 4 * node + slot
+
+// The candidates of leaf `cell`: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
+// Space, the shaft of the ray's chord through the leaf's (padded) box: the ray in the box's own
+// unit-cube space (an affine map keeps t) is given to octree_ls.h's ols_leaf_shaft as a leaf at
+// cell (0, 0, 0), the lookup the octree leaves make (Algorithm 3).
+#ifdef LEAF_LINE_SPACE
+INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf, int3 cell, float2 t_leaf);  // octree_ls.h
+#endif
+
+INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
+    uint node = cell >> 2;
+    uint slot = cell & 3u;
+    uint first = comp4u(V(bvh_links)[2u * node], slot);
+    Candidates c = plain_list(first, first + comp4u(V(bvh_links)[2u * node + 1u], slot));
+#ifdef LEAF_LINE_SPACE
+    Box leaf = bvh_slot_box(CTX_ARG node, slot);
+    float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    float3 a = (leaf.lo - ray.o) * inv;
+    float3 b = (leaf.hi - ray.o) * inv;
+    float3 n = min(a, b);
+    float3 f = max(a, b);
+    float2 span = make_float2(max(max(n.x, n.y), max(n.z, tr.tmin)), min(min(f.x, f.y), f.z) * BVH_WIDEN);
+    Box box = bvh_ls_box(leaf);
+    float3 scale = box.hi - box.lo;
+    GridRay g;
+    g.o = (ray.o - box.lo) / scale;
+    g.d = ray.d / scale;
+    g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
+    g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
+    c = ols_leaf_shaft(CTX_ARG c, g, cell, make_int3(0, 0, 0), span);
+#endif
+    return test_candidates(CTX_ARG tr, c);
+}
+
+// Push a hit slot (entry e at entry distance t) among the ones this node pushed so far, kept in
+// decreasing t from `base` up, so the nearest is popped first.
+#define BVH_PUSH(e_, t_) {                                                   \
+        int j_ = sp;                                                         \
+        while (j_ > base && stack_t[j_ - 1] < (t_)) {                        \
+            stack[j_] = stack[j_ - 1];                                       \
+            stack_t[j_] = stack_t[j_ - 1];                                   \
+            j_ -= 1;                                                         \
+        }                                                                    \
+        stack[j_] = (e_);                                                    \
+        stack_t[j_] = (t_);                                                  \
+        sp += 1;                                                             \
+    }
+#define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
+    if ((ref_) != BVH_NONE && (tn_) <= (tf_))                                \
+        BVH_PUSH((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_), tn_)
+
+// Stack-based walk, nearest first. A node visit (one `iterations` step) tests its 4 slots' boxes
+// against [tmin, the closest hit so far] and pushes the hit ones, nodes and leaves alike, in
+// order of entry distance; then entries are popped, nearest first: one whose entry lies past
+// the closest hit by then is dropped, a leaf is tested (trace.h's candidate loop), a node is
+// visited. QUERY_ANY: the first hit ends the walk. Stack: at most 3 entries per level of the path
+// plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
+INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
+    Trace tr = trace_start(CTX_ARG ray, id);
+#ifdef SLICED
+    // Bounded slices (trace.h) need a walk that saves its state in 8 words; this walk's state is
+    // its stack, so it does not suspend yet: it runs its rays whole in the first slice (a budget
+    // no ray spends). A ray whose loops llvmpipe still cuts fails the case naming the limit
+    // (backends/__init__.py: _run_slices); a restart trail (Laine 2010) would let it resume.
+    tr.budget = 0xffffffffu;
+#endif
+    float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+    float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
+    float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
+    float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
+    float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
+    uint stack[BVH_STACK];
+    float stack_t[BVH_STACK];
+    int sp = 0;
+    uint node = 0u;
+    int done = 0;
+    while (done == 0) {
+        tr = trace_tick(tr);
+        float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;
+        float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;
+        float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;
+        float4 by = (V(bvh_nodes)[6u * node + 3u] - oy) * inv.y;
+        float4 az = (V(bvh_nodes)[6u * node + 4u] - oz) * inv.z;
+        float4 bz = (V(bvh_nodes)[6u * node + 5u] - oz) * inv.z;
+        float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));
+        float best = tr.best.t;
+        float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,
+                        make_float4(best, best, best, best));
+        uint4 refs = V(bvh_links)[2u * node];
+        uint4 counts = V(bvh_links)[2u * node + 1u];
+        int base = sp;
+        BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)
+        BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)
+        BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)
+        BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
+        node = BVH_NONE;
+        while (sp > 0) {
+            sp -= 1;
+            uint e = stack[sp];
+            if (stack_t[sp] > tr.best.t) continue;
+            if ((e & BVH_LEAF) == 0u) { node = e; break; }
+            tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);
+#ifdef QUERY_ANY
+            if (tr.best.prim >= 0) break;
+#endif
+        }
+        if (node == BVH_NONE) done = 1;
+    }
+    return trace_finish(CTX_ARG tr, id);
+}
+
+INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
+    uint ray = trace_ray(CTX_ARG gid);
+    store_hit(CTX_ARG ray, trace_bvh(CTX_ARG load_ray(CTX_ARG ray), ray));
+}
+#endif  // traversal

@@ -1,0 +1,242 @@
+"""`bvh` and `bvh-ls` (issue 15): the device build is a valid BVH (checked against a numpy walk of
+the buffers it leaves), its Morton sort is a sort, and the traversals agree with Embree on the
+built-in scenes and Sponza, closest and any hit, on both backends."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lsbench import backends
+from lsbench.backends import BuildParams
+from lsbench.backends.structures import bvh
+from lsbench.inputs.rays import make_rays, primary_rays
+from lsbench.inputs.scene import Camera
+from lsbench.inputs.scenes import load_scene
+from lsbench.oracle.classifier import judge_hits
+from lsbench.oracle.embree import embree_closest
+
+from conftest import scene_path
+
+SPONZA_CAMERA = Camera(eye=(1100, 180, -40), target=(-900, 420, 40), up=(0, 1, 0), fov_deg=65)
+
+
+def _read_tree(built):
+    d = built.device
+    n_nodes = built.stats["nodes"]
+    nodes = d.read(built.buffers["bvh_nodes"], np.float32, 24 * n_nodes).reshape(n_nodes, 6, 4)
+    links = d.read(built.buffers["bvh_links"], np.uint32, 8 * n_nodes).reshape(n_nodes, 2, 4)
+    tris = d.read(built.buffers["voxel_tris"], np.uint32)
+    return nodes, links, tris
+
+
+def _slot_box(nodes, node, slot):
+    box = nodes[node, :, slot]  # lo.x, hi.x, lo.y, hi.y, lo.z, hi.z
+    return box[0::2], box[1::2]
+
+
+NONE = 0xFFFFFFFF
+
+
+def check_tree(built, scene, leaf_size):
+    """Walk the device's 4-wide nodes from the root: every node reached once, every triangle in
+    exactly one leaf, every slot's box holding the boxes of its node's slots and its leaf's
+    triangles (exact float min/max: no tolerance), no leaf over leaf_size, the depth as the build
+    says (the traversal's stack is sized from it). Returns the leaf sizes."""
+    nodes, links, tris = _read_tree(built)
+    n = scene.triangle_count
+    assert np.array_equal(np.sort(tris), np.arange(n, dtype=np.uint32)), "voxel_tris is no permutation"
+    triangles = scene.triangles.astype(np.float32)
+    seen_nodes = np.zeros(len(nodes), np.int64)
+    covered = np.zeros(n, np.int64)
+    leaf_sizes = []
+    stack = [(0, 0)]
+    deepest = 0
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        seen_nodes[node] += 1
+        used = [s for s in range(4) if links[node, 0, s] != NONE]
+        assert used == list(range(len(used))) and (len(used) >= 2 or len(nodes) == 1), (node, used)
+        for slot in used:
+            ref, count = int(links[node, 0, slot]), int(links[node, 1, slot])
+            lo, hi = _slot_box(nodes, node, slot)
+            if count == 0:  # a node: this box holds its slots' boxes
+                for s in range(4):
+                    if links[ref, 0, s] != NONE:
+                        clo, chi = _slot_box(nodes, ref, s)
+                        assert np.all(lo <= clo) and np.all(chi <= hi), (node, slot, ref)
+                stack.append((ref, depth + 1))
+            else:
+                assert count <= leaf_size
+                leaf_sizes.append(count)
+                ids = tris[ref:ref + count]
+                covered[ids] += 1
+                v = triangles[ids].reshape(-1, 3)
+                assert np.array_equal(lo, v.min(0)) and np.array_equal(hi, v.max(0)), "leaf box is not tight"
+    assert np.all(seen_nodes == 1), "a node is unreachable or reached twice (buffers sized exactly)"
+    assert np.all(covered == 1), f"{np.count_nonzero(covered != 1)} triangles not in exactly one leaf"
+    assert built.stats["leaves"] == len(leaf_sizes)
+    # bvh.py's stack bound: 4-wide levels = binary depth // 2 + 1
+    assert deepest <= built.stats["depth"] // 2
+    return np.array(leaf_sizes)
+
+
+@pytest.mark.parametrize("scene_name,leaf_size,quality", [
+    ("cornell", 8, "treelet"), ("cornell", 64, "sah"), ("cornell", 64, "none"), ("single-triangle", 1, "treelet"),
+    ("two-planes", 1, "treelet"), ("spheres", 4, "sah"), ("spheres", 4, "treelet"), ("spheres", 1, "treelet"),
+    ("spheres", 16, "plain-treelet")])
+def test_the_device_build_is_a_valid_bvh(device, scene_name, leaf_size, quality):
+    scene = load_scene(scene_name)
+    if scene_name == "spheres":  # a few hundred triangles of it
+        scene = _subset(scene, 600)
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1), leaf_size=leaf_size,
+                                                              options={"bvh_quality": quality}))
+    try:
+        sizes = check_tree(built, scene, leaf_size)
+        assert built.memory_bytes == 128 * built.stats["nodes"] + 4 * scene.triangle_count
+        # Each quality pass only takes a change that lowers the SAH cost: the collapse chooses per
+        # node, the treelets rebuild only where cheaper; on the spheres the restructuring gains.
+        stats = built.stats
+        assert stats["sah_cost"] <= stats["sah_cost_collapse"] * (1 + 1e-6)
+        assert stats["sah_cost_collapse"] <= stats["sah_cost_plain"] * (1 + 1e-6)
+        if quality.endswith("treelet") and scene_name == "spheres":
+            assert stats["sah_cost"] < 0.95 * stats["sah_cost_collapse"]
+        if scene.triangle_count <= leaf_size and quality == "none":  # one node, one leaf of all
+            assert built.stats["nodes"] == 1 and list(sizes) == [scene.triangle_count]
+    finally:
+        built.release()
+
+
+def test_plain_leaves_fill_to_the_leaf_size(device):
+    """bvh_quality = "none": every subtree of at most leaf_size triangles is one leaf, so some leaf
+    holds more than half of it (a Karras node of more triangles splits into two smaller ones)."""
+    scene = _subset(load_scene("spheres"), 600)
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1), leaf_size=16,
+                                                              options={"bvh_quality": "none"}))
+    try:
+        sizes = check_tree(built, scene, 16)
+        assert sizes.max() > 8 and built.stats["sah_cost"] == built.stats["sah_cost_plain"]
+    finally:
+        built.release()
+
+
+def _subset(scene, count):
+    import dataclasses
+
+    return dataclasses.replace(scene, faces=np.ascontiguousarray(scene.faces[:count]), _hash=None)
+
+
+def test_morton_codes_are_sorted_stably(device):
+    """Build steps 1-2 on their own: the device's codes match a numpy float32 reference and the
+    radix sort returns them in the order of numpy's stable argsort."""
+    scene = _subset(load_scene("spheres"), 700)  # 3 sort chunks of 256
+    geometry = backends.geometry_for("bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    bvh.prepare(device)
+    sb = {"vertices": device.upload("vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
+          "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
+    n = scene.triangle_count
+    u = dict(geometry.uniforms(), bvh_n=n, bvh_leaf_size=1, bvh_sah=1, bvh_node_count=0)
+    keys, ids = bvh.sort_by_morton_code(device, sb, n, u)
+    try:
+        keys_np = device.read(keys, np.uint32, n)
+        ids_np = device.read(ids, np.uint32, n)
+    finally:
+        for b in (keys, ids, *sb.values()):
+            device.release(b)
+    reference = _morton_reference(scene, geometry)
+    assert np.array_equal(keys_np, reference[ids_np]), "a code differs from the numpy reference"
+    assert np.array_equal(ids_np, np.argsort(reference, kind="stable"))
+    assert len(np.unique(reference)) > n // 2  # codes that say something
+
+
+def _morton_reference(scene, geometry):
+    t = scene.triangles.astype(np.float32)
+    g = (t - np.asarray(geometry.origin, np.float32)) * (1.0 / np.asarray(geometry.voxel_size)).astype(np.float32)
+    res = np.asarray(geometry.resolution, np.float32)
+    c = (g[:, 0] + g[:, 1] + g[:, 2]) * np.float32(1.0 / 3.0) / res * np.float32(1024.0)
+    q = np.clip(c, 0, 1023).astype(np.uint32)
+
+    def spread(x):
+        out = np.zeros_like(x)
+        for b in range(10):
+            out |= ((x >> b) & 1) << (3 * b)
+        return out
+
+    return spread(q[:, 0]) | (spread(q[:, 1]) << 1) | (spread(q[:, 2]) << 2)
+
+
+def _agree(scene, rays, built):
+    hits = backends.trace(built, rays)
+    ref_p, ref_t = embree_closest(scene, rays)
+    acc, cl = judge_hits(scene, rays, hits.prim_ids, hits.distances, ref_p, ref_t)
+    assert cl.unexplained == 0, (acc, cl)
+    return hits, acc
+
+
+@pytest.mark.parametrize("structure", ["bvh", "bvh-ls"])
+@pytest.mark.parametrize("scene_name", ["atrium", "spheres", "sponza"])
+def test_hits_agree_with_embree(device, structure, scene_name):
+    """Closest hits of primary rays, and any hits of shadow rays, on the big scenes."""
+    if scene_name == "sponza":
+        from lsbench.inputs.scenes import load_scene as load
+
+        scene, camera = load(scene_path("sponza.ply")), SPONZA_CAMERA
+    else:
+        scene, camera = load_scene(scene_name), None
+    params = BuildParams(resolution=(1, 1, 1), ls_n=1 if structure == "bvh-ls" else 0,
+                         ls_min_candidates=8 if structure == "bvh-ls" else 0)
+    built = backends.build(device, structure, scene, params)
+    try:
+        size = 48
+        _, acc = _agree(scene, primary_rays(scene, size, size, camera), built)
+        assert acc.agreement >= 0.999
+        lo, hi = scene.bounds
+        light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+        shadow = make_rays("shadow", scene, 24, 24, camera, {"light_size": light, "samples": 1})
+        hits, acc = _agree(scene, shadow, built)
+        occluded = hits.prim_ids >= 0
+        assert 0.0 < occluded.mean() < 1.0 and acc.wrong == acc.distance == 0
+        if structure == "bvh-ls":
+            assert built.stats["linespace_leaves"] > 0 and built.stats["linespace_skipped_leaves"] > 0
+    finally:
+        built.release()
+
+
+def test_work_counters_count_node_visits_and_tests(device):
+    scene = load_scene("cornell")
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    try:
+        rays = primary_rays(scene, 16, 16)
+        hits = backends.trace(built, rays, work=True)
+        steps, tests = hits.work[:, 0], hits.work[:, 1]
+        assert np.all(steps >= 1) and np.all(steps <= built.stats["nodes"])
+        assert np.all(tests[hits.prim_ids >= 0] >= 1)
+    finally:
+        built.release()
+
+
+def test_leaf_size_is_checked():
+    with pytest.raises(ValueError, match="leaf_size must be one of 1, 2, 4"):
+        bvh.check_leaf_size(3)
+
+
+def test_leaf_size_key_and_flag(tmp_path):
+    """The scenario key: checked with the allowed values named, crossed only into the BVH cases,
+    part of their key and record (the other structures' keys stay as they were)."""
+    from lsbench.inputs.scenario import ScenarioError, load_scenario
+    from lsbench.running.execute import new_record
+
+    path = tmp_path / "s.toml"
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "bvh", "bvh-ls"]\n'
+                    'backends = ["opencl"]\nresolutions = [8]\nleaf_size = [0, 4]\n')
+    cases = load_scenario(str(path)).cases
+    keys = sorted(c.key for c in cases)
+    assert len(cases) == 5 and sum(k.endswith("|l4") for k in keys) == 2
+    assert any(k.endswith("|bvh|opencl|r8|n0|k0|l8") for k in keys)  # 0: the default, as built
+    assert any(k.endswith("|bvh-ls|opencl|r8|n2|k0|l16") for k in keys)
+    assert [k for k in keys if "|grid|" in k] == ["cornell|primary@64x64|grid|opencl|r8|n0|k0"]
+    bvh_case = next(c for c in cases if c.structure == "bvh" and c.leaf_size == 4)
+    assert new_record(bvh_case, load_scenario(str(path)).settings).leaf_size == 4
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["bvh"]\nresolutions = [8]\nleaf_size = 3\n')
+    with pytest.raises(ScenarioError, match=r"leaf_size.* 3 is not 0 \(the structure's default\) or one of 1, 2, 4"):
+        load_scenario(str(path))
