@@ -287,3 +287,20 @@ def test_every_run_setting_has_a_rule_its_default_meets():
     for f in fields:
         if f.default is not None:
             RUN_RULES[f.name].check(f.name, f.default)
+
+
+def test_bvh_blocks_need_no_resolution_and_get_one_case(tmp_path):
+    """A BVH builds no grid: a block of BVHs only may leave out resolutions, and in a block with
+    grids a BVH is one case, not one identical case per resolution; a grid block still needs them."""
+    from lsbench.inputs.scenario import ScenarioError, load_scenario
+
+    path = tmp_path / "s.toml"
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["bvh", "bvh-ls"]\nbackends = ["opencl"]\n'
+                    '[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "bvh"]\nbackends = ["opencl"]\n'
+                    'resolutions = [8, 16]\n')
+    cases = load_scenario(str(path)).cases
+    assert sorted((c.structure, c.resolution) for c in cases) == [
+        ("bvh", "1"), ("bvh", "8"), ("bvh-ls", "1"), ("grid", "16"), ("grid", "8")]
+    path.write_text('[[cases]]\nscenes = ["cornell"]\nstructures = ["grid", "bvh"]\n')
+    with pytest.raises(ScenarioError, match="missing resolutions"):
+        load_scenario(str(path))

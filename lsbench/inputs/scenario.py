@@ -40,7 +40,8 @@ table) is an error with a did-you-mean, as is a value of the wrong TOML type (`r
 width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; max_unexplained an
 integer >= 0; min_agreement in [0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
 structures, backends, resolutions, ls_n, ls_min_candidates, leaf_size, rays one value or a non-empty list
-(leaf_size 0 or one of 1, 2, 4, ..., 128, 255; bvh and bvh-ls ignore resolutions);
+(leaf_size 0 or one of 1, 2, 4, ..., 128, 255; bvh and bvh-ls ignore resolutions: a block of
+them only needs none, and a mixed block gives them one case, at its first resolution);
 camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees; ray_params a table whose keys
 the ray set takes, each value by its rule (e.g. samples an integer >= 1, light 3 finite numbers).
 """
@@ -256,6 +257,13 @@ def _settings(run, where: str) -> RunSettings:
     return settings
 
 
+def _takes_no_resolution(name) -> bool:
+    """Structures with a leaf size (the BVHs) build no grid, so a resolution means nothing to them."""
+    from lsbench.backends import STRUCTURES
+
+    return name in STRUCTURES and bool(STRUCTURES[name].leaf_size)
+
+
 def _block_cases(block, where: str, settings: RunSettings, width: int, height: int) -> list[Case]:
     """The cases of one [[cases]] block: the cross product of its lists."""
     from lsbench.backends import BACKENDS, structure_info, structure_names
@@ -264,12 +272,16 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
         raise BadValue(f"{where}{show_typed(block)} is not a table: write each block under [[cases]]")
     check_keys(where, block, CASE_KEYS)
     missing = [k for k in REQUIRED_CASE_KEYS if k not in block]
+    if missing == ["resolutions"] and isinstance(block.get("structures"), (list, str)) and all(
+            _takes_no_resolution(s) for s in ([block["structures"]] if isinstance(block["structures"], str)
+                                              else block["structures"])):
+        missing = []  # a block of BVHs only: they have no grid resolution
     if missing:
         raise BadValue(f"{where}missing {', '.join(missing)} (needed: {', '.join(REQUIRED_CASE_KEYS)})")
     scenes = [expand_scene(s) for s in check_list(f"{where}scenes", block["scenes"], TEXT)]
     names = check_list(f"{where}structures", block["structures"], one_of(structure_names(), "structure"))
     backs = check_list(f"{where}backends", block.get("backends", list(BACKENDS)), one_of(BACKENDS, "backend"))
-    resolutions = check_list(f"{where}resolutions", block["resolutions"], RESOLUTION)
+    resolutions = check_list(f"{where}resolutions", block.get("resolutions", ["1"]), RESOLUTION)
     ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N)  # N for Line Space structures
     ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES)
     leaf_sizes = check_list(f"{where}leaf_size", block.get("leaf_size", 0), LEAF_SIZE)  # BVHs only
@@ -285,7 +297,8 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
         for rays in ray_sets:
             for s in names:
                 for b in backs:
-                    for r in resolutions:
+                    # A BVH ignores the resolution: one case, not one per resolution of the block.
+                    for r in (resolutions[:1] if _takes_no_resolution(s) else resolutions):
                         # A Line Space N only means something for Line Space structures.
                         line_space = structure_info(s).line_space
                         for n in (ns if line_space else [0]):
