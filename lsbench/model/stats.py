@@ -1,0 +1,145 @@
+"""The scene statistics the model predicts from, measured on the device with the structures' own
+kernels (never a host voxelizer): the triangles per voxel of the conservative voxelization's count
+pass (grid.h, Delgado Krämer 2019, 3.4) at a candidate resolution, the non-empty cells per octree
+level derived from them (the octree build's flag pyramid, svo.py: a cell is needed when a child
+is), and, for the Line Space, the candidates per shaft of a sample of cells (the real Line Space
+build, linespace.build_linespaces, run on those cells only).
+
+    counts = voxel_counts(device, scene_buffers, n_tris, geometry)     # VoxelCounts
+    counts.references, counts.non_empty, counts.level_cells()          # per octree level
+    sample = line_space_sample(device, scene_buffers, n_tris, geometry, counts, n)
+    sample.candidates_per_reference(k)   # shaft candidates per reference in cells with > k
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lsbench.backends.device import Device
+from lsbench.backends.structures import grid, linespace
+from lsbench.backends.structures.base import GridGeometry
+
+# Cells of the Line Space sample: spread evenly over the non-empty cells sorted by their count, so
+# the dense cells (which a threshold K keeps) are in it as well as the sparse ones.
+LS_SAMPLE_CELLS = 32
+
+
+@dataclass
+class VoxelCounts:
+    """Triangles per voxel of one grid geometry (the count pass), as a (z, y, x) array: voxel
+    (x, y, z) is x + Rx * (y + Ry * z) as on the device (grid.h)."""
+    geometry: GridGeometry
+    counts: np.ndarray  # uint32, shape (Rz, Ry, Rx)
+
+    @property
+    def voxels(self) -> int:
+        return int(self.counts.size)
+
+    @property
+    def references(self) -> int:
+        return int(self.counts.sum(dtype=np.int64))
+
+    @property
+    def non_empty(self) -> int:
+        return int(np.count_nonzero(self.counts))
+
+    def above(self, k: int) -> tuple[int, int]:
+        """(cells, references) of the voxels with more than k candidates (those that get a Line
+        Space at ls_min_candidates = k)."""
+        keep = self.counts > k
+        return int(np.count_nonzero(keep)), int(self.counts[keep].sum(dtype=np.int64))
+
+    def occupancy_levels(self) -> list[np.ndarray]:
+        """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
+        boolean (z, y, x) arrays, level l of 2^l cells per axis; a cell is non-empty when one of
+        its 8 children is (svo.py's flag pyramid)."""
+        occ = self.counts > 0
+        levels = [occ]
+        while occ.shape[0] > 1:
+            r = occ.shape[0] // 2
+            occ = occ.reshape(r, 2, r, 2, r, 2).any(axis=(1, 3, 5))
+            levels.append(occ)
+        return levels[::-1]
+
+    def level_cells(self) -> list[int]:
+        """Non-empty cells per octree level 0..depth (the nodes of each level, leaves last)."""
+        return [int(np.count_nonzero(level)) for level in self.occupancy_levels()]
+
+
+def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
+    """The voxelization's count pass at `geometry` on the device (the same kernel every grid and
+    octree build runs first), read back."""
+    grid.prepare(device)
+    buf = device.alloc("model_voxel_counts", 4 * geometry.voxel_count)
+    try:
+        device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
+                        geometry.uniforms(), geometry.resolution)
+        device.finish()
+        counts = device.read(buf, np.uint32, geometry.voxel_count)
+    finally:
+        device.release(buf)
+    rx, ry, rz = geometry.resolution
+    return VoxelCounts(geometry, counts.reshape(rz, ry, rx).copy())
+
+
+@dataclass
+class LineSpaceSample:
+    """Shaft candidates of a sample of cells at one geometry and N, from the real build."""
+    n: int
+    cell_counts: np.ndarray  # int64: each sampled cell's candidates (its voxel list length)
+    cell_candidates: np.ndarray  # int64: the candidates of all its 15 N^4 shafts together
+
+    def candidates_per_reference(self, k: int) -> float:
+        """Shaft candidates per voxel reference in the sampled cells with more than k candidates
+        (the ratio estimator of the cells that get a Line Space at K = k); 0 when none is sampled."""
+        keep = self.cell_counts > k
+        refs = int(self.cell_counts[keep].sum())
+        return float(self.cell_candidates[keep].sum()) / refs if refs else 0.0
+
+
+def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS) -> np.ndarray:
+    """Flat voxel ids of the sample: `size` non-empty voxels evenly spaced in count order."""
+    flat = counts.counts.ravel()
+    non_empty = np.flatnonzero(flat)
+    if len(non_empty) <= size:
+        return non_empty
+    order = non_empty[np.argsort(flat[non_empty], kind="stable")]
+    return order[np.linspace(0, len(order) - 1, size).round().astype(np.int64)]
+
+
+def line_space_sample(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                      counts: VoxelCounts, n: int, size: int = LS_SAMPLE_CELLS) -> LineSpaceSample:
+    """The Line Spaces of a sample of non-empty voxels, built on the device by the build every
+    Line Space structure runs (linespace.build_linespaces on the grid's voxel lists), and each
+    sampled cell's shaft candidates read from its offsets."""
+    linespace.prepare(device)
+    cells = sample_cells(counts, size)
+    if len(cells) == 0:
+        return LineSpaceSample(n, np.zeros(0, np.int64), np.zeros(0, np.int64))
+    lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    made = list(lists.values())
+    try:
+        offsets = device.read(lists["voxel_offsets"], np.uint32, geometry.voxel_count + 1).astype(np.int64)
+        rx, ry, _ = geometry.resolution
+        x, y, z = cells % rx, (cells // rx) % ry, cells // (rx * ry)
+        lo = np.stack([x, y, z], axis=1).astype(np.float32)
+        boxes = np.zeros((len(cells), 2, 4), np.float32)  # (lo.xyz, 0), (hi.xyz, 0) in grid space
+        boxes[:, 0, :3], boxes[:, 1, :3] = lo, lo + 1
+        ranges = np.stack([offsets[cells], offsets[cells + 1]], axis=1).astype(np.uint32)
+        box_buf = device.upload("model_ls_boxes", boxes.ravel())
+        range_buf = device.upload("model_ls_ranges", ranges.ravel())
+        made += [box_buf, range_buf]
+        cell_counts = (ranges[:, 1].astype(np.int64) - ranges[:, 0])
+        sample = linespace.Cells(len(cells), box_buf, range_buf, lists["voxel_tris"], int(cell_counts.sum()))
+        ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
+        made += list(ls.buffers.values())
+        per_cell = ls.shafts_per_cell
+        shaft_offsets = np.concatenate([device.read(ls.buffers[name], np.uint32) for name in
+                                        sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")),
+                                               key=lambda k: (len(k), k))]).astype(np.int64)
+        bounds = shaft_offsets[np.arange(len(cells) + 1) * per_cell]
+        return LineSpaceSample(n, cell_counts, np.diff(bounds))
+    finally:
+        for b in made:
+            device.release(b)
