@@ -7,8 +7,8 @@ build, linespace.build_linespaces, run on those cells only).
 
     counts = voxel_counts(device, scene_buffers, n_tris, geometry)     # VoxelCounts
     counts.references, counts.non_empty, counts.level_cells()          # per octree level
-    sample = line_space_sample(device, scene_buffers, n_tris, geometry, counts, n)
-    sample.candidates_per_reference(k)   # shaft candidates per reference in cells with > k
+    samples = line_space_samples(device, scene_buffers, n_tris, geometry, counts, (1, 2))
+    samples[2].candidates_per_reference(k)   # shaft candidates per reference in cells with > k
 """
 from __future__ import annotations
 
@@ -108,15 +108,15 @@ def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS) -> np.ndarray
     return order[np.linspace(0, len(order) - 1, size).round().astype(np.int64)]
 
 
-def line_space_sample(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
-                      counts: VoxelCounts, n: int, size: int = LS_SAMPLE_CELLS) -> LineSpaceSample:
-    """The Line Spaces of a sample of non-empty voxels, built on the device by the build every
-    Line Space structure runs (linespace.build_linespaces on the grid's voxel lists), and each
-    sampled cell's shaft candidates read from its offsets."""
+def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                       counts: VoxelCounts, ns, size: int = LS_SAMPLE_CELLS) -> dict[int, LineSpaceSample]:
+    """The Line Spaces of a sample of non-empty voxels for each N in `ns`, built on the device by
+    the build every Line Space structure runs (linespace.build_linespaces on the grid's voxel lists,
+    built once for all N), and each sampled cell's shaft candidates read from its offsets."""
     linespace.prepare(device)
     cells = sample_cells(counts, size)
     if len(cells) == 0:
-        return LineSpaceSample(n, np.zeros(0, np.int64), np.zeros(0, np.int64))
+        return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros(0, np.int64)) for n in ns}
     lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
     made = list(lists.values())
     try:
@@ -130,16 +130,26 @@ def line_space_sample(device: Device, scene_buffers: dict, n_tris: int, geometry
         box_buf = device.upload("model_ls_boxes", boxes.ravel())
         range_buf = device.upload("model_ls_ranges", ranges.ravel())
         made += [box_buf, range_buf]
-        cell_counts = (ranges[:, 1].astype(np.int64) - ranges[:, 0])
+        cell_counts = ranges[:, 1].astype(np.int64) - ranges[:, 0]
         sample = linespace.Cells(len(cells), box_buf, range_buf, lists["voxel_tris"], int(cell_counts.sum()))
-        ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
-        made += list(ls.buffers.values())
-        per_cell = ls.shafts_per_cell
-        shaft_offsets = np.concatenate([device.read(ls.buffers[name], np.uint32) for name in
-                                        sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")),
-                                               key=lambda k: (len(k), k))]).astype(np.int64)
-        bounds = shaft_offsets[np.arange(len(cells) + 1) * per_cell]
-        return LineSpaceSample(n, cell_counts, np.diff(bounds))
+        out = {}
+        for n in ns:
+            ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
+            try:
+                names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
+                shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
+            finally:
+                for b in ls.buffers.values():
+                    device.release(b)
+            bounds = shaft_offsets[np.arange(len(cells) + 1) * ls.shafts_per_cell]
+            out[n] = LineSpaceSample(n, cell_counts, np.diff(bounds))
+        return out
     finally:
         for b in made:
             device.release(b)
+
+
+def line_space_sample(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                      counts: VoxelCounts, n: int, size: int = LS_SAMPLE_CELLS) -> LineSpaceSample:
+    """line_space_samples for one N."""
+    return line_space_samples(device, scene_buffers, n_tris, geometry, counts, (n,), size)[n]

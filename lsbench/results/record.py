@@ -59,6 +59,8 @@ class Record:
     backend_version: str | None = None
     node: dict | None = None  # the cluster node that ran the case (lsbench/running/cluster.py)
     settings: dict = field(default_factory=dict)
+    budget_mib: float | None = None  # device-memory budget of the structure (case's, else the run's)
+    auto: dict | None = None  # an "auto" case: what the cost model chose and why (lsbench/model/cost.py)
     # what came out
     status: str = "failed"
     reason: str = ""
@@ -82,6 +84,7 @@ class Record:
     candidate_tests_per_ray: float | None = None
     linespace_lookups_per_ray: float | None = None
     work_counters_error: str | None = None
+    predicted: dict | None = None  # an "auto" case: the model's prediction of the chosen setting
     heatmaps: dict = field(default_factory=dict)
     work_clock: dict | None = None
     wall_seconds: float | None = None
