@@ -124,10 +124,8 @@ def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int 
     """Mean iterations, candidate tests and Line Space lookups per ray (module docstring)."""
     info = STRUCTURES[structure]
     n_rays = max(len(sample.t_end), 1)
-    flat = counts.counts.ravel().astype(np.float64)
-    o, d = _in_grid(sample, counts.geometry)
-    ray_ids, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
-    listed = flat[cells]
+    cells, octree_iterations = _walk(counts, sample, info.cubic_power_of_two)
+    listed = counts.counts.ravel()[cells].astype(np.float64)
     if info.line_space:
         per_ref = ls.candidates_per_reference(k) / shafts_per_cell(ls.n) if ls is not None else 0.0
         with_ls = listed > k
@@ -135,19 +133,29 @@ def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int 
         lookups = float(np.count_nonzero(with_ls))
     else:
         tests, lookups = listed.sum(), 0.0
-    if info.cubic_power_of_two:
-        levels = counts.occupancy_levels()
-        depth = len(levels) - 1
-        iterations = 0
-        for level in range(1, depth + 1):
-            lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
-            _, level_cells = crossed_cells(lo, lc, sample.tmin, sample.t_end, (2**level,) * 3)
-            r = 2**level
-            x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
-            iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
-    else:
-        iterations = len(cells)
+    iterations = octree_iterations if info.cubic_power_of_two else len(cells)
     return Work(iterations / n_rays, float(tests) / n_rays, lookups / n_rays)
+
+
+def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndarray, int]:
+    """The voxels the sample's rays cross, and for an octree the cells of all levels inside a
+    non-empty parent; once per (counts, sample), whatever N and K."""
+    key = (id(sample), octree)
+    if key not in counts.walks:
+        o, d = _in_grid(sample, counts.geometry)
+        _, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+        iterations = 0
+        if octree:
+            levels = counts.occupancy
+            depth = len(levels) - 1
+            for level in range(1, depth + 1):
+                lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
+                _, level_cells = crossed_cells(lo, lc, sample.tmin, sample.t_end, (2**level,) * 3)
+                r = 2**level
+                x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
+                iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
+        counts.walks[key] = (cells, iterations)
+    return counts.walks[key]
 
 
 def seconds_per_ray(structure: str, work: Work, constants) -> float:

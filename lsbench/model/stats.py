@@ -12,7 +12,8 @@ build, linespace.build_linespaces, run on those cells only).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,8 +22,12 @@ from lsbench.backends.structures import grid, linespace
 from lsbench.backends.structures.base import GridGeometry
 
 # Cells of the Line Space sample: spread evenly over the non-empty cells sorted by their count, so
-# the dense cells (which a threshold K keeps) are in it as well as the sparse ones.
+# the dense cells (which a threshold K keeps) are in it as well as the sparse ones; fewer (at least
+# LS_SAMPLE_MIN) where the sample's triangle/shaft tests would pass LS_SAMPLE_PAIRS (coarse grids of
+# dense scenes: 32 cells of 5000 triangles at N = 4 are 600 M tests, half a minute on PoCL here).
 LS_SAMPLE_CELLS = 32
+LS_SAMPLE_MIN = 4
+LS_SAMPLE_PAIRS = 2**24
 
 
 @dataclass
@@ -31,6 +36,7 @@ class VoxelCounts:
     (x, y, z) is x + Rx * (y + Ry * z) as on the device (grid.h)."""
     geometry: GridGeometry
     counts: np.ndarray  # uint32, shape (Rz, Ry, Rx)
+    walks: dict = field(default_factory=dict, repr=False)  # model/cost.py's ray walks, per ray sample
 
     @property
     def voxels(self) -> int:
@@ -50,6 +56,10 @@ class VoxelCounts:
         keep = self.counts > k
         return int(np.count_nonzero(keep)), int(self.counts[keep].sum(dtype=np.int64))
 
+    @functools.cached_property
+    def occupancy(self) -> list[np.ndarray]:
+        return self.occupancy_levels()
+
     def occupancy_levels(self) -> list[np.ndarray]:
         """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
         boolean (z, y, x) arrays, level l of 2^l cells per axis; a cell is non-empty when one of
@@ -64,7 +74,7 @@ class VoxelCounts:
 
     def level_cells(self) -> list[int]:
         """Non-empty cells per octree level 0..depth (the nodes of each level, leaves last)."""
-        return [int(np.count_nonzero(level)) for level in self.occupancy_levels()]
+        return [int(np.count_nonzero(level)) for level in self.occupancy]
 
 
 def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
@@ -98,14 +108,20 @@ class LineSpaceSample:
         return float(self.cell_candidates[keep].sum()) / refs if refs else 0.0
 
 
-def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS) -> np.ndarray:
-    """Flat voxel ids of the sample: `size` non-empty voxels evenly spaced in count order."""
+def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int = 0) -> np.ndarray:
+    """Flat voxel ids of the sample: `size` non-empty voxels evenly spaced in count order, fewer
+    when their triangles x `shafts` pass LS_SAMPLE_PAIRS."""
     flat = counts.counts.ravel()
     non_empty = np.flatnonzero(flat)
-    if len(non_empty) <= size:
-        return non_empty
     order = non_empty[np.argsort(flat[non_empty], kind="stable")]
-    return order[np.linspace(0, len(order) - 1, size).round().astype(np.int64)]
+
+    def pick(k: int) -> np.ndarray:
+        return order if len(order) <= k else order[np.linspace(0, len(order) - 1, k).round().astype(np.int64)]
+    cells = pick(size)
+    pairs = int(flat[cells].sum(dtype=np.int64)) * shafts
+    if pairs > LS_SAMPLE_PAIRS:
+        cells = pick(max(LS_SAMPLE_MIN, int(len(cells) * LS_SAMPLE_PAIRS / pairs)))
+    return cells
 
 
 def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
@@ -114,36 +130,37 @@ def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometr
     the build every Line Space structure runs (linespace.build_linespaces on the grid's voxel lists,
     built once for all N), and each sampled cell's shaft candidates read from its offsets."""
     linespace.prepare(device)
-    cells = sample_cells(counts, size)
-    if len(cells) == 0:
+    if counts.non_empty == 0:
         return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros(0, np.int64)) for n in ns}
     lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
-    made = list(lists.values())
     try:
         offsets = device.read(lists["voxel_offsets"], np.uint32, geometry.voxel_count + 1).astype(np.int64)
-        rx, ry, _ = geometry.resolution
-        x, y, z = cells % rx, (cells // rx) % ry, cells // (rx * ry)
-        lo = np.stack([x, y, z], axis=1).astype(np.float32)
-        boxes = np.zeros((len(cells), 2, 4), np.float32)  # (lo.xyz, 0), (hi.xyz, 0) in grid space
-        boxes[:, 0, :3], boxes[:, 1, :3] = lo, lo + 1
-        ranges = np.stack([offsets[cells], offsets[cells + 1]], axis=1).astype(np.uint32)
-        box_buf = device.upload("model_ls_boxes", boxes.ravel())
-        range_buf = device.upload("model_ls_ranges", ranges.ravel())
-        made += [box_buf, range_buf]
+        return {n: _sample(device, scene_buffers, geometry, lists["voxel_tris"], offsets,
+                           sample_cells(counts, size, linespace.shafts_per_cell(n)), n) for n in ns}
+    finally:
+        for b in lists.values():
+            device.release(b)
+
+
+def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_tris, offsets: np.ndarray,
+            cells: np.ndarray, n: int) -> LineSpaceSample:
+    """The Line Spaces of `cells` (flat voxel ids) at N = n, and each one's shaft candidates."""
+    rx, ry, _ = geometry.resolution
+    x, y, z = cells % rx, (cells // rx) % ry, cells // (rx * ry)
+    lo = np.stack([x, y, z], axis=1).astype(np.float32)
+    boxes = np.zeros((len(cells), 2, 4), np.float32)  # (lo.xyz, 0), (hi.xyz, 0) in grid space
+    boxes[:, 0, :3], boxes[:, 1, :3] = lo, lo + 1
+    ranges = np.stack([offsets[cells], offsets[cells + 1]], axis=1).astype(np.uint32)
+    made = [device.upload("model_ls_boxes", boxes.ravel()), device.upload("model_ls_ranges", ranges.ravel())]
+    try:
         cell_counts = ranges[:, 1].astype(np.int64) - ranges[:, 0]
-        sample = linespace.Cells(len(cells), box_buf, range_buf, lists["voxel_tris"], int(cell_counts.sum()))
-        out = {}
-        for n in ns:
-            ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
-            try:
-                names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
-                shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
-            finally:
-                for b in ls.buffers.values():
-                    device.release(b)
-            bounds = shaft_offsets[np.arange(len(cells) + 1) * ls.shafts_per_cell]
-            out[n] = LineSpaceSample(n, cell_counts, np.diff(bounds))
-        return out
+        sample = linespace.Cells(len(cells), made[0], made[1], voxel_tris, int(cell_counts.sum()))
+        ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
+        made += list(ls.buffers.values())
+        names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
+        shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
+        bounds = shaft_offsets[np.arange(len(cells) + 1) * ls.shafts_per_cell]
+        return LineSpaceSample(n, cell_counts, np.diff(bounds))
     finally:
         for b in made:
             device.release(b)
