@@ -217,15 +217,14 @@ class Choice:
     requested: dict = field(default_factory=dict)
     chosen_counts: VoxelCounts | None = None  # the chosen resolution's statistics (exact bytes once built)
 
-    def no_fit_reason(self) -> str:
-        """Why nothing was chosen: the budget and the smallest option tried."""
+    def no_fit_reason(self, budget_mib: float) -> str:
+        """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried."""
         sized = [o for o in self.options if o.bytes.buffers]
         smallest = min(sized, key=lambda o: o.bytes.total) if sized else None
         need = (f"the smallest of the {len(self.options)} settings tried ({smallest.summary()['resolution']}"
                 f"{f', N={smallest.ls_n}, K={smallest.ls_min_candidates}' if smallest.ls_n else ''}) needs "
                 f"{smallest.bytes.total / 2**20:.1f} MiB") if smallest else "none fits the device's buffers"
-        return (f"auto {self.structure}: no setting fits the device-memory budget of "
-                f"{self.budget_bytes / 2**20:g} MiB; {need}")
+        return f"auto {self.structure}: no setting fits the device-memory budget of {budget_mib:g} MiB; {need}"
 
     def params(self):
         from lsbench.backends.structures.base import BuildParams
@@ -315,7 +314,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
 def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):
     """The BuildParams of `case` and, for a case with "auto" parameters, the Choice that picked
     them (execute.py calls this once, before the build); (None, choice) when no option fits the
-    budget (choice.no_fit_reason() says why)."""
+    budget (choice.no_fit_reason(budget_mib) says why)."""
     if not case.auto:
         return case.build_params(), None
     choice = choose(device, case.structure, scene, ray_sample(rays, hit_t), case.resolution, case.ls_n,

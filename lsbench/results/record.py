@@ -133,7 +133,8 @@ REQUIRED_FIELDS = ("key", "status")
 # RunSettings that do not change what an ok case measures, so they are not part of a record's
 # `settings`: the case's own fields carry what ran (image size, ray set), the gate's thresholds
 # (min_agreement, max_unexplained) are verdicts applied when judging, timeout and memory budget
-# only decide whether a case fails
+# only decide whether a case fails (the device-memory budget_mib is a result setting where it is set:
+# "auto" cases choose under it)
 # (failed cases are retried), and a record with heatmaps serves a run without them (one without
 # is redone when they are wanted). Any other setting, including one added later, counts as
 # changing results.
@@ -145,6 +146,8 @@ def result_settings(settings) -> dict:
     """The run settings (lsbench.inputs.scenario.RunSettings) that change a case's results, as
     a stored record holds them (through JSON: a tuple setting compares as the list it is read as)."""
     chosen = {k: v for k, v in dataclasses.asdict(settings).items() if k not in NOT_RESULT_SETTINGS}
+    if chosen.get("budget_mib") is None:  # no device-memory budget: records of runs before it stand
+        chosen.pop("budget_mib", None)
     return json.loads(json.dumps(chosen, default=str))
 
 

@@ -109,7 +109,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         if choice is not None:
             rec.update(auto=choice.record())
         if params is None:
-            raise DeviceLimitError(choice.no_fit_reason())
+            raise DeviceLimitError(choice.no_fit_reason(budget))
         if choice is not None:
             rec.update(resolution_x=params.resolution[0], resolution_y=params.resolution[1],
                        resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
