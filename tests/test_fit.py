@@ -184,3 +184,29 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     monkeypatch.setenv("LSBENCH_FIT_DIR", str(tmp_path))
     _, rec = _auto_record("grid", 1.0)
     assert rec["status"] == "ok" and rec["auto"]["constants"] == str(files[0])
+
+
+def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tmp_path, capsys):
+    """A tiny fit-check run (cornell, grid swept 4^3 and 64^3 with a budget that 64^3 passes, and
+    auto): `lsbench fit --check` names the auto setting, the best swept setting that fit (4^3:
+    64^3 failed over the budget) and their rays/s."""
+    from lsbench.cli import main
+    from lsbench.model.check import check_rows
+    from lsbench.results.store import read_run
+
+    path = tmp_path / "fit-check.toml"
+    path.write_text('name = "t"\n[run]\nwidth = 16\nheight = 16\nrepeats = 1\nembree_timing = false\n'
+                    'budget_mib = 0.1\n[[cases]]\nscenes = ["cornell"]\nstructures = ["grid"]\n'
+                    'backends = ["opencl"]\nresolutions = [4, 64, "auto"]\n')
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out), "--allow-failed"]) == 0
+    _, records = read_run(out)
+    over = next(r for r in records if r["resolution_x"] == 64)
+    assert over["status"] == "failed" and "over the device-memory budget of 0.1 MiB" in over["reason"]
+    (row,) = check_rows(records)
+    assert row.best_setting == "4" and row.swept == 2 and row.auto_rays_per_second > 0
+    assert row.ratio == pytest.approx(row.auto_rays_per_second / row.best_rays_per_second)
+    capsys.readouterr()
+    assert main(["fit", "--check", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "auto/best" in table and "cornell  grid" in table

@@ -41,6 +41,9 @@ def setup_arguments(sub) -> None:
     p.add_argument("--out-dir", type=writable_folder, metavar="DIR",
                    help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")
     p.add_argument("--json", action="store_true", help="print the stored constants as JSON")
+    p.add_argument("--check", metavar="RUN_DIR",
+                   help="calibrate nothing: print the fit check of a run of scenarios/fit-check.toml (each auto "
+                        "case beside the best swept setting under the same budget, lsbench/model/check.py)")
     p.set_defaults(func=run)
 
 
@@ -94,6 +97,8 @@ def run(args) -> int:
 
     from lsbench.model.constants import save_constants
 
+    if args.check:
+        return print_check(args.check)
     width, height = parse_size(args.size)
     out = []
     for backend in args.backends:
@@ -107,4 +112,23 @@ def run(args) -> int:
         out.append(data)
     if args.json:
         print(json.dumps(out, indent=1))
+    return 0
+
+
+def print_check(run_dir: str) -> int:
+    """The fit-check table of a run folder; exit 1 when it holds no auto case."""
+    from lsbench.commands.common import UsageError
+    from lsbench.model.check import check_rows, check_table
+    from lsbench.results.store import read_run
+
+    try:
+        _, records = read_run(run_dir)
+    except FileNotFoundError as exc:
+        raise UsageError(f"--check: {exc}") from None
+    rows = check_rows(records)
+    if not rows:
+        say(f"{run_dir}: no auto case (run scenarios/fit-check.toml into it)")
+        return 1
+    for line in check_table(rows):
+        say(line)
     return 0
