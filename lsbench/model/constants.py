@@ -25,6 +25,11 @@ from lsbench.report.format import slug
 FAMILIES = ("grid", "svo", "esvo")
 
 
+def family(structure: str) -> str:
+    """Whose walk a structure runs (its step constant): grid, svo or esvo."""
+    return structure.removesuffix("-ls")
+
+
 @dataclass(frozen=True)
 class Constants:
     ray: float  # seconds per ray, whatever it crosses (setup, hit store)
@@ -84,8 +89,6 @@ COLUMNS = ("ray", "step_grid", "step_svo", "step_esvo", "test", "lookup")
 
 def design_row(structure: str, iterations: float, tests: float, lookups: float) -> list[float]:
     """One calibration case as a row of the least-squares system (COLUMNS)."""
-    from lsbench.model.cost import family
-
     fam = family(structure)
     return [1.0] + [iterations if fam == f else 0.0 for f in FAMILIES] + [tests, lookups]
 

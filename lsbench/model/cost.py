@@ -33,6 +33,7 @@ from lsbench.backends.structures import STRUCTURES
 from lsbench.backends.structures.base import GridGeometry
 from lsbench.backends.structures.linespace import shafts_per_cell
 from lsbench.model.bytes import BytesPrediction, predict_bytes
+from lsbench.model.constants import family, load_constants
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
 
 GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
@@ -43,11 +44,6 @@ AUTO_NS = (1, 2, 3, 4)
 AUTO_KS = (0, 2, 4, 8, 16, 32, 64)
 RAY_SAMPLE = 512  # rays of the case walked per setting
 RUNNERS_UP = 5  # options kept in the record besides the chosen one
-
-
-def family(structure: str) -> str:
-    """Whose walk a structure runs (its step constant): grid, svo or esvo."""
-    return structure.removesuffix("-ls")
 
 
 @dataclass(frozen=True)
@@ -263,7 +259,6 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     on `device` (count passes, Line Space samples), the scene uploaded once for them."""
     from lsbench import backends
     from lsbench.backends.structures.base import BuildParams, parse_resolution
-    from lsbench.model.constants import load_constants
     from lsbench.model.stats import line_space_samples, voxel_counts
 
     t_start = time.perf_counter()
