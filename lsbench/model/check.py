@@ -25,6 +25,11 @@ class CheckRow:
     swept: int
 
     @property
+    def same_setting(self) -> bool:
+        """The auto case built the best swept setting: their ratio is then the timing noise."""
+        return self.best_setting == self.auto_setting
+
+    @property
     def ratio(self) -> float | None:
         """Auto rays/s over the best swept rays/s (1.0 = as fast)."""
         if self.auto_rays_per_second is None or not self.best_rays_per_second:
@@ -77,12 +82,13 @@ def check_table(rows: list[CheckRow]) -> list[str]:
         return "-" if v is None else format(v, fmt)
 
     header = ("scene", "structure", "backend", "budget MiB", "auto setting", "auto Mrays/s", "auto MiB",
-              "predicted Mrays/s", "best swept", "best Mrays/s", "best MiB", "auto/best", "choose s",
+              "predicted Mrays/s", "best swept", "best Mrays/s", "best MiB", "auto/best", "same", "choose s",
               "sweep s")
     body = [(r.scene, r.structure, r.backend, num(r.budget_mib, "g"), r.auto_setting,
              num(r.auto_rays_per_second and r.auto_rays_per_second / 1e6, ".3f"), num(r.auto_mib, ".1f"),
              num(r.predicted_rays_per_second and r.predicted_rays_per_second / 1e6, ".3f"),
              r.best_setting or "-", num(r.best_rays_per_second and r.best_rays_per_second / 1e6, ".3f"),
-             num(r.best_mib, ".1f"), num(r.ratio, ".2f"), num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}")
+             num(r.best_mib, ".1f"), num(r.ratio, ".2f"), "=" if r.same_setting else "",
+             num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}")
             for r in rows]
-    return text_table(header, body, right={3, 5, 6, 7, 9, 10, 11, 12, 13})
+    return text_table(header, body, right={3, 5, 6, 7, 9, 10, 11, 13, 14})

@@ -9,8 +9,9 @@ over the counted grids (the model's arithmetic, not a structure: nothing here bu
 - svo / esvo (3.3.2, 5.2): one iteration per cell, on every level, that the ray crosses inside a
   non-empty parent (both walks visit exactly those, front to back), the leaves' candidates tested;
 - a Line Space (3.3.3, 4): in a cell with more than K candidates one shaft lookup and that shaft's
-  candidates, count x (shaft candidates per reference of the sample) / 15 N^4 on average (the mean
-  over the shafts: an estimate, since rays do not pick shafts uniformly); other cells test their list.
+  candidates: count x the sample's candidates per reference of each shaft, weighted by how often the
+  sampled rays' chords through such cells take that shaft (an estimate: the sampled cells stand for
+  all); other cells test their list.
 
 Time per ray = ray + step[family] x iterations + test x candidate tests + lookup x lookups, the
 constants per device (model/constants.py: measured by `lsbench fit`, or documented defaults).
@@ -120,12 +121,12 @@ def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int 
     """Mean iterations, candidate tests and Line Space lookups per ray (module docstring)."""
     info = STRUCTURES[structure]
     n_rays = max(len(sample.t_end), 1)
-    cells, octree_iterations = _walk(counts, sample, info.cubic_power_of_two)
+    ray_ids, cells, octree_iterations = _walk(counts, sample, info.cubic_power_of_two)
     listed = counts.counts.ravel()[cells].astype(np.float64)
     if info.line_space:
-        per_ref = ls.candidates_per_reference(k) / shafts_per_cell(ls.n) if ls is not None else 0.0
         with_ls = listed > k
-        tests = np.where(with_ls, listed * per_ref, listed).sum()
+        tests = listed[~with_ls].sum() + listed[with_ls].sum() * _shaft_tests_per_reference(
+            counts, sample, ray_ids[with_ls], cells[with_ls], k, ls)
         lookups = float(np.count_nonzero(with_ls))
     else:
         tests, lookups = listed.sum(), 0.0
@@ -133,13 +134,61 @@ def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int 
     return Work(iterations / n_rays, float(tests) / n_rays, lookups / n_rays)
 
 
-def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndarray, int]:
-    """The voxels the sample's rays cross, and for an octree the cells of all levels inside a
+def _shaft_tests_per_reference(counts: VoxelCounts, sample: RaySample, ray_ids: np.ndarray, cells: np.ndarray,
+                               k: int, ls: LineSpaceSample | None) -> float:
+    """Candidates a ray tests in a Line Space cell, per reference of the cell: the sampled cells'
+    candidates per reference of each shaft (cells over K), weighted by how often the sample's rays
+    take that shaft in the Line Space cells they cross (their chords' shafts, linespace.h)."""
+    if ls is None or len(ls.cell_counts) == 0 or len(cells) == 0:
+        return 0.0
+    keep = ls.cell_counts > k
+    refs = int(ls.cell_counts[keep].sum())
+    if refs == 0:
+        return 0.0
+    per_shaft = ls.shaft_candidates[keep].sum(axis=0) / refs
+    o, d = _in_grid(sample, counts.geometry)
+    used = np.bincount(chord_shafts(o[ray_ids], d[ray_ids], cells, counts.geometry.resolution, ls.n),
+                       minlength=len(per_shaft))
+    return float(used @ per_shaft) / len(cells)
+
+
+def chord_shafts(o: np.ndarray, d: np.ndarray, cells: np.ndarray, res, n: int) -> np.ndarray:
+    """The shaft id (Listing 1: N^4 block(fs, fe) + N^2 patch_s + patch_e, fs < fe) of each ray's
+    chord through its cell (flat id), as ls_chord in shaders/common/linespace.h computes it."""
+    rx, ry, _ = (int(v) for v in res)
+    lo = np.stack([cells % rx, (cells // rx) % ry, cells // (rx * ry)], axis=1).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(d != 0, 1.0 / np.where(d != 0, d, 1.0), np.inf)
+        t_enter = np.where(d != 0, (lo + (d <= 0) - o) * inv, -np.inf)
+        t_exit = np.where(d != 0, (lo + (d > 0) - o) * inv, np.inf)
+    rows = np.arange(len(cells))
+    axis_in, axis_out = np.argmax(t_enter, axis=1), np.argmin(t_exit, axis=1)
+    t_in, t_out = t_enter[rows, axis_in], t_exit[rows, axis_out]
+    face_in = 2 * axis_in + (d[rows, axis_in] <= 0)
+    face_out = 2 * axis_out + (d[rows, axis_out] > 0)
+
+    def patch(t, axis):
+        q = o + d * t[:, None] - lo
+        u, v = q[rows, (axis + 1) % 3], q[rows, (axis + 2) % 3]
+        ui = np.clip(np.floor(u * n), 0, n - 1).astype(np.int64)
+        vi = np.clip(np.floor(v * n), 0, n - 1).astype(np.int64)
+        return n * vi + ui
+
+    p_in, p_out = patch(t_in, axis_in), patch(t_out, axis_out)
+    fs, fe = np.minimum(face_in, face_out), np.maximum(face_in, face_out)
+    ps, pe = np.where(face_in <= face_out, p_in, p_out), np.where(face_in <= face_out, p_out, p_in)
+    block = fs * (11 - fs) // 2 + (fe - fs - 1)
+    # a chord that enters and leaves through one face (grazing its plane) has no shaft: clamped
+    return np.clip(n**4 * block + n * n * ps + pe, 0, shafts_per_cell(n) - 1)
+
+
+def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndarray, np.ndarray, int]:
+    """The (ray, voxel) pairs of the voxels the sample's rays cross, and for an octree the cells of all levels inside a
     non-empty parent; once per (counts, sample), whatever N and K."""
     key = (id(sample), octree)
     if key not in counts.walks:
         o, d = _in_grid(sample, counts.geometry)
-        _, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+        ray_ids, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
         iterations = 0
         if octree:
             levels = counts.occupancy
@@ -150,7 +199,7 @@ def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndar
                 r = 2**level
                 x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
                 iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
-        counts.walks[key] = (cells, iterations)
+        counts.walks[key] = (ray_ids, cells, iterations)
     return counts.walks[key]
 
 

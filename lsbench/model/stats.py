@@ -98,7 +98,12 @@ class LineSpaceSample:
     """Shaft candidates of a sample of cells at one geometry and N, from the real build."""
     n: int
     cell_counts: np.ndarray  # int64: each sampled cell's candidates (its voxel list length)
-    cell_candidates: np.ndarray  # int64: the candidates of all its 15 N^4 shafts together
+    shaft_candidates: np.ndarray  # int64 (cells, 15 N^4): each sampled cell's candidates per shaft
+
+    @property
+    def cell_candidates(self) -> np.ndarray:
+        """The candidates of all of each sampled cell's shafts together."""
+        return self.shaft_candidates.sum(axis=1)
 
     def candidates_per_reference(self, k: int) -> float:
         """Shaft candidates per voxel reference in the sampled cells with more than k candidates
@@ -131,7 +136,8 @@ def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometr
     built once for all N), and each sampled cell's shaft candidates read from its offsets."""
     linespace.prepare(device)
     if counts.non_empty == 0:
-        return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros(0, np.int64)) for n in ns}
+        return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros((0, linespace.shafts_per_cell(n)), np.int64))
+                for n in ns}
     lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
     try:
         offsets = device.read(lists["voxel_offsets"], np.uint32, geometry.voxel_count + 1).astype(np.int64)
@@ -159,8 +165,8 @@ def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_t
         made += list(ls.buffers.values())
         names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
         shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
-        bounds = shaft_offsets[np.arange(len(cells) + 1) * ls.shafts_per_cell]
-        return LineSpaceSample(n, cell_counts, np.diff(bounds))
+        per_shaft = np.diff(shaft_offsets[: len(cells) * ls.shafts_per_cell + 1])
+        return LineSpaceSample(n, cell_counts, per_shaft.reshape(len(cells), ls.shafts_per_cell))
     finally:
         for b in made:
             device.release(b)
