@@ -211,6 +211,10 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     monkeypatch.setenv("LSBENCH_FIT_DIR", str(tmp_path))
     _, rec = _auto_record("grid", 1.0)
     assert rec["status"] == "ok" and rec["auto"]["constants"] == str(files[0])
+    files[0].write_text("{not json")  # a damaged file: the defaults, and the record says why
+    _, rec = _auto_record("grid", 1.0)
+    assert rec["status"] == "ok" and rec["auto"]["constants"].startswith("defaults (opencl")
+    assert f"{files[0]} unreadable (JSONDecodeError" in rec["auto"]["constants"]
 
 
 def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tmp_path, capsys):

@@ -13,6 +13,7 @@ the record of an auto case says which it used (`auto.constants`: the file, or "d
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -66,12 +67,17 @@ def load_constants(device, folder: Path | None = None) -> Constants:
     """The stored constants of `device` (a backends Device), else its backend's DEFAULTS."""
     info = device.info()
     path = constants_path(device.backend, info["device"], folder)
-    if path.is_file():
+    if not path.is_file():
+        return DEFAULTS[device.backend]
+    try:
         data = json.loads(path.read_text())
         extra = {k: v for k, v in data.items() if k not in ("ray", "step", "test", "lookup")}
         return Constants(float(data["ray"]), {f: float(data["step"][f]) for f in FAMILIES}, float(data["test"]),
                          float(data["lookup"]), str(path), extra)
-    return DEFAULTS[device.backend]
+    except (OSError, ValueError, KeyError, TypeError) as exc:  # a damaged file: say so, use the defaults
+        fallback = DEFAULTS[device.backend]
+        return dataclasses.replace(fallback, source=f"{fallback.source}; {path} unreadable "
+                                                    f"({type(exc).__name__}: {exc}; run `lsbench fit` again)")
 
 
 def save_constants(data: dict, backend: str, device_name: str, folder: Path | None = None) -> Path:
