@@ -2,6 +2,9 @@
 prediction against the device's counters, auto settings, the budget, `lsbench fit`."""
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import pytest
 
 from lsbench import backends
@@ -152,15 +155,41 @@ def test_auto_line_space_case_predicts_its_bytes_and_is_exact_once_built():
     assert rec["predicted"]["memory_bytes_exact"] is False
 
 
-def test_a_structure_over_the_budget_fails_naming_both_sizes():
+@pytest.mark.parametrize("structure,resolution,n", [("grid", "32", 0), ("esvo", "16", 0), ("grid-ls", "8", 2)])
+def test_a_structure_over_the_budget_fails_before_its_build_naming_both_sizes(structure, resolution, n):
+    """A fixed setting over the budget fails without a build: its bytes from the count pass (exact
+    for grid and the octrees, a lower bound for a Line Space: all but its candidates), named beside
+    the budget; the same setting under a budget it fits builds exactly those bytes."""
     from lsbench.inputs.scenario import Case, RunSettings
     from lsbench.running.execute import execute
 
-    case = Case("cornell", "grid", "opencl", "32", rays="primary", width=16, height=16)
-    rec = execute(case, RunSettings(width=16, height=16, repeats=1, embree_timing=False, budget_mib=0.01))
-    assert rec["status"] == "failed" and rec["budget_mib"] == 0.01
-    mib = rec["memory_bytes"] / 2**20
-    assert f"takes {mib:.1f} MiB, over the device-memory budget of 0.01 MiB" in rec["reason"]
+    case = Case("cornell", structure, "opencl", resolution, n, rays="primary", width=16, height=16)
+    settings = RunSettings(width=16, height=16, repeats=1, embree_timing=False, budget_mib=0.01)
+    rec = execute(case, settings)
+    assert rec["status"] == "failed" and rec["budget_mib"] == 0.01 and rec["memory_bytes"] is None
+    predicted = rec["predicted"]["memory_bytes"]
+    exact = structure != "grid-ls"
+    assert rec["predicted"]["memory_bytes_exact"] is exact
+    assert (f"needs {'' if exact else 'at least '}{predicted / 2**20:.1f} MiB (predicted from the count pass, "
+            "not built), over the device-memory budget of 0.01 MiB") in rec["reason"]
+    built = execute(case, dataclasses.replace(settings, budget_mib=64.0))
+    assert built["status"] == "ok"
+    assert built["memory_bytes"] == predicted if exact else built["memory_bytes"] > predicted
+
+
+def test_a_built_structure_over_the_budget_fails_naming_both_sizes():
+    """A Line Space whose exact part fits but whose candidates pass the budget is built, measured
+    and then failed, its reason naming the built size and the budget."""
+    from lsbench.inputs.scenario import Case, RunSettings
+    from lsbench.running.execute import execute
+
+    case = Case("spheres", "grid-ls", "opencl", "8", 2, rays="primary", width=16, height=16)
+    settings = RunSettings(width=16, height=16, repeats=1, embree_timing=False, budget_mib=64.0)
+    full = execute(case, settings)["memory_bytes"]
+    budget = math.floor((full - 1) / 2**20 * 1000) / 1000  # the structure passes it by < 1 KiB, its offsets do not
+    rec = execute(case, dataclasses.replace(settings, budget_mib=budget))
+    assert rec["status"] == "failed" and rec["memory_bytes"] == full
+    assert f"takes {full / 2**20:.1f} MiB, over the device-memory budget of {budget:g} MiB" in rec["reason"]
 
 
 def test_auto_with_nothing_under_the_budget_fails_naming_the_smallest():

@@ -384,3 +384,28 @@ def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, cons
         b, over_device = BytesPrediction({}, False), True
     fits = not over_device and (budget_bytes is None or b.total <= budget_bytes)
     return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), fits)
+
+
+def bytes_at_least(device, structure: str, scene, params) -> tuple[int, bool]:
+    """Before a build of `params`: the bytes it will allocate at least, from one count pass on the
+    device, and whether that is exact (grid, svo, esvo: yes; a Line Space: all but its shaft
+    candidates, which are not known before its count pass). execute.py fails a case over its
+    budget with this instead of building it."""
+    from lsbench import backends
+    from lsbench.backends.structures import svo
+    from lsbench.model.stats import voxel_counts
+
+    info = STRUCTURES[structure]
+    if info.cubic_power_of_two:
+        svo.octree_depth(params.resolution)  # the recipe's own ValueError for a resolution it cannot build
+    geometry = backends.geometry_for(structure, scene, params)
+    bufs = {"vertices": device.upload("model_vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
+            "faces": device.upload("model_faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
+    try:
+        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+    finally:
+        for b in bufs.values():
+            device.release(b)
+    n = (params.ls_n or 1) if info.line_space else 0
+    return predict_bytes(device, structure, counts, n, params.ls_min_candidates, candidates=0).total, \
+        not info.line_space

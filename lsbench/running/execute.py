@@ -88,7 +88,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenes import load_scene
     from lsbench.oracle.classifier import judge_hits
-    from lsbench.model.cost import resolve_case
+    from lsbench.model.cost import bytes_at_least, resolve_case
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -113,6 +113,14 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         if choice is not None:
             rec.update(resolution_x=params.resolution[0], resolution_y=params.resolution[1],
                        resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+        if budget_bytes is not None and choice is None:
+            # A setting that cannot fit fails before its build (a Line Space build can take minutes)
+            at_least, exact = bytes_at_least(device, case.structure, scene, params)
+            if at_least > budget_bytes:
+                rec.update(predicted={"memory_bytes": at_least, "memory_bytes_exact": exact})
+                raise DeviceLimitError(
+                    f"the structure needs {'' if exact else 'at least '}{at_least / 2**20:.1f} MiB (predicted from "
+                    f"the count pass, not built), over the device-memory budget of {budget:g} MiB (budget_mib, --budget)")
         built = backends.build(device, case.structure, scene, params)
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
