@@ -6,7 +6,7 @@ every "auto" case on that device then finds them.
 The sweep: every structure at a few settings on small built-in scenes (the same cases as `lsbench
 trace`, in this process), each with its work counters (iterations, tests, lookups per ray) and its
 device time per ray; a non-negative least-squares fit weighted by relative error gives the
-constants, and the table shows each case's measured time beside the fitted one."""
+constants, and the stored file keeps each case's measured time beside the fitted one."""
 from __future__ import annotations
 
 import datetime as _dt
