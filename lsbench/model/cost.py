@@ -239,12 +239,16 @@ class Option:
     work: Work
     seconds_per_ray: float
     fits: bool
+    limit: str = ""  # a device limit that rules the setting out (its Line Space sample met it)
 
     def summary(self) -> dict:
-        return {"resolution": "x".join(map(str, self.resolution)), "ls_n": self.ls_n,
-                "ls_min_candidates": self.ls_min_candidates, "predicted_bytes": self.bytes.total,
-                "bytes_exact": self.bytes.exact, "predicted_rays_per_second": _rate(self.seconds_per_ray),
-                "predicted_work": asdict(self.work), "fits_budget": self.fits}
+        out = {"resolution": "x".join(map(str, self.resolution)), "ls_n": self.ls_n,
+               "ls_min_candidates": self.ls_min_candidates, "predicted_bytes": self.bytes.total,
+               "bytes_exact": self.bytes.exact, "predicted_rays_per_second": _rate(self.seconds_per_ray),
+               "predicted_work": asdict(self.work), "fits_budget": self.fits}
+        if self.limit:
+            out["limit"] = self.limit
+        return out
 
 
 def _rate(seconds: float) -> float | None:
@@ -268,7 +272,9 @@ class Choice:
         smallest = min(sized, key=lambda o: o.bytes.total) if sized else None
         need = (f"the smallest of the {len(self.options)} settings tried ({smallest.summary()['resolution']}"
                 f"{f', N={smallest.ls_n}, K={smallest.ls_min_candidates}' if smallest.ls_n else ''}) needs "
-                f"{smallest.bytes.total / 2**20:.1f} MiB") if smallest else "none fits the device's buffers"
+                f"{smallest.bytes.total / 2**20:.1f} MiB") if smallest else \
+            "none can be built on this device (" + next((o.limit for o in self.options if o.limit),
+                                                         "more buffers than the driver allows") + ")"
         return f"auto {self.structure}: no setting fits the device-memory budget of {budget_mib:g} MiB; {need}"
 
     def params(self):
@@ -292,12 +298,13 @@ class Choice:
 
     def record(self) -> dict:
         """What the record's `auto` field holds (docs/record.md)."""
-        ranked = sorted(self.options, key=lambda o: (not o.fits, o.seconds_per_ray))
+        ranked = sorted(self.options, key=lambda o: (not o.fits, bool(o.limit), o.seconds_per_ray))
         runners = [o.summary() for o in ranked if o is not self.chosen][:RUNNERS_UP]
         return {"requested": self.requested, "budget_bytes": self.budget_bytes,
                 "chosen": self.chosen.summary() if self.chosen else None,
                 "runners_up": runners, "options": len(self.options),
-                "options_over_budget": sum(not o.fits for o in self.options),
+                "options_over_budget": sum(not o.fits and not o.limit for o in self.options),
+                "options_over_device_limits": sum(bool(o.limit) for o in self.options),
                 "choose_seconds": self.seconds, "constants": self.constants_source}
 
 
@@ -373,12 +380,17 @@ def _offsets_bytes(counts: VoxelCounts, n: int, k: int) -> int:
 def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, constants) -> Option:
     from lsbench.backends.device import DeviceLimitError
 
-    work = predict_work(structure, counts, sample, k, ls)
-    if STRUCTURES[structure].line_space and ls is None:  # pruned: the offsets alone are over the budget
+    line_space = STRUCTURES[structure].line_space
+    no_cells = line_space and counts.above(k)[0] == 0  # K over every cell: no Line Space is built
+    if ls is not None and ls.limit and not no_cells:  # the device cannot build this N here
+        return Option(res, n, k, BytesPrediction({}, False), Work(0.0, 0.0, 0.0), math.inf, False, ls.limit)
+    work = predict_work(structure, counts, sample, k, None if no_cells else ls)
+    if line_space and ls is None and not no_cells:  # pruned: the offsets alone are over the budget
         b = BytesPrediction({"ls_shaft_offsets": _offsets_bytes(counts, n, k)}, False)
         return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), False)
     try:
-        b = predict_bytes(device, structure, counts, n, k, sample=ls)
+        b = predict_bytes(device, structure, counts, n, k, sample=None if no_cells else ls,
+                          candidates=0 if no_cells else None)
         over_device = False
     except DeviceLimitError:  # more buffers than the driver allows: never fits
         b, over_device = BytesPrediction({}, False), True

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lsbench.backends.device import Device
+from lsbench.backends.device import Device, DeviceLimitError
 from lsbench.backends.structures import grid, linespace
 from lsbench.backends.structures.base import GridGeometry
 
@@ -99,6 +99,7 @@ class LineSpaceSample:
     n: int
     cell_counts: np.ndarray  # int64: each sampled cell's candidates (its voxel list length)
     shaft_candidates: np.ndarray  # int64 (cells, 15 N^4): each sampled cell's candidates per shaft
+    limit: str = ""  # the device limit the sample's build met (that N cannot be built here), else ""
 
     @property
     def cell_candidates(self) -> np.ndarray:
@@ -138,14 +139,28 @@ def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometr
     if counts.non_empty == 0:
         return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros((0, linespace.shafts_per_cell(n)), np.int64))
                 for n in ns}
-    lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    try:
+        lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    except DeviceLimitError as exc:
+        return {n: _limited(n, exc) for n in ns}
     try:
         offsets = device.read(lists["voxel_offsets"], np.uint32, geometry.voxel_count + 1).astype(np.int64)
-        return {n: _sample(device, scene_buffers, geometry, lists["voxel_tris"], offsets,
-                           sample_cells(counts, size, linespace.shafts_per_cell(n)), n) for n in ns}
+        out = {}
+        for n in ns:
+            try:
+                out[n] = _sample(device, scene_buffers, geometry, lists["voxel_tris"], offsets,
+                                 sample_cells(counts, size, linespace.shafts_per_cell(n)), n)
+            except DeviceLimitError as exc:  # e.g. llvmpipe's loop budget in the densest cell (sampled)
+                out[n] = _limited(n, exc)
+        return out
     finally:
         for b in lists.values():
             device.release(b)
+
+
+def _limited(n: int, exc: Exception) -> LineSpaceSample:
+    return LineSpaceSample(n, np.zeros(0, np.int64), np.zeros((0, linespace.shafts_per_cell(n)), np.int64),
+                           f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
 
 
 def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_tris, offsets: np.ndarray,
