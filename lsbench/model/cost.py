@@ -266,16 +266,19 @@ class Choice:
     requested: dict = field(default_factory=dict)
     chosen_counts: VoxelCounts | None = None  # the chosen resolution's statistics (exact bytes once built)
 
-    def no_fit_reason(self, budget_mib: float) -> str:
-        """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried."""
-        sized = [o for o in self.options if o.bytes.buffers]
-        smallest = min(sized, key=lambda o: o.bytes.total) if sized else None
-        need = (f"the smallest of the {len(self.options)} settings tried ({smallest.summary()['resolution']}"
-                f"{f', N={smallest.ls_n}, K={smallest.ls_min_candidates}' if smallest.ls_n else ''}) needs "
-                f"{smallest.bytes.total / 2**20:.1f} MiB") if smallest else \
-            "none can be built on this device (" + next((o.limit for o in self.options if o.limit),
-                                                         "more buffers than the driver allows") + ")"
-        return f"auto {self.structure}: no setting fits the device-memory budget of {budget_mib:g} MiB; {need}"
+    def no_fit_reason(self, budget_mib: float | None) -> str:
+        """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried, or
+        the device limit that ruled the options out."""
+        sized = [o for o in self.options if o.bytes.buffers and not o.limit]
+        smallest = min(sized, key=lambda o: o.bytes.total) if sized and budget_mib else None
+        if smallest is None:
+            limit = next((o.limit for o in self.options if o.limit), "more buffers than the driver allows")
+            return f"auto {self.structure}: none of the {len(self.options)} settings tried can be built here ({limit})"
+        setting = smallest.summary()["resolution"] + (f", N={smallest.ls_n}, K={smallest.ls_min_candidates}"
+                                                      if smallest.ls_n else "")
+        return (f"auto {self.structure}: no setting fits the device-memory budget of {budget_mib:g} MiB; the "
+                f"smallest of the {len(self.options)} settings tried ({setting}) needs "
+                f"{smallest.bytes.total / 2**20:.1f} MiB")
 
     def params(self):
         from lsbench.backends.structures.base import BuildParams
