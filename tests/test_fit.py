@@ -278,18 +278,12 @@ def test_a_line_space_the_device_cannot_build_is_ruled_out_naming_the_limit():
     (each K tried gives that cell a Line Space) is ruled out with the limit named, and the case's
     reason says so instead of naming a budget."""
     import numpy as np
+    from helpers import dense_cell_case
 
-    from lsbench.inputs.rays import RaySet
-    from lsbench.inputs.scene import Scene
     from lsbench.model.cost import choose, ray_sample
 
     device = backends.get_device("glsl")
-    rng = np.random.default_rng(2)
-    v = (rng.uniform(0.2, 0.8, (70000, 1, 3)) + rng.normal(0, 0.002, (70000, 3, 3))).reshape(-1, 3)
-    v = np.vstack([v, [[9.0, 9.0, 9.0], [9.5, 9.0, 9.0], [9.0, 9.5, 9.0]]])
-    scene = Scene("dense-cell", v.astype(np.float32), np.arange(3 * 70001, dtype=np.uint32).reshape(-1, 3), "test")
-    o = np.tile(np.float32([[0.5, 0.5, -1.0]]), (64, 1)) + rng.uniform(-0.05, 0.05, (64, 3)).astype(np.float32)
-    rays = RaySet("into-the-cell", o, np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1)))
+    scene, rays = dense_cell_case(70000)
     choice = choose(device, "grid-ls", scene, ray_sample(rays, np.full(64, np.inf)), resolution="2x2x2", ls_n=1,
                     ls_min_candidates="auto")
     limited = [o for o in choice.options if o.limit]

@@ -9,12 +9,13 @@ from lsbench.backends import BuildParams, DeviceLimitError
 from lsbench.backends.structures.base import BOX_EPS
 from lsbench.oracle import reference
 from lsbench.oracle.embree import embree_closest
-from lsbench.inputs.rays import RaySet, primary_rays
+from lsbench.inputs.rays import primary_rays
 from lsbench.inputs.scene import Camera, Scene
 from lsbench.inputs.scenes import load_scene
 from lsbench.oracle.verify import compare
 
 from conftest import scene_path
+from helpers import dense_cell_case
 
 # Sponza (Crytek, cm): an interior view down the atrium like the thesis' images.
 SPONZA_CAMERA = Camera(eye=(1100.0, 180.0, -40.0), target=(-900.0, 420.0, 40.0), up=(0, 1, 0), fov_deg=65.0)
@@ -117,13 +118,7 @@ def test_driver_loop_limit_fails_the_case_naming_it(device, structure, n):
     (LP_MAX_TGSI_LOOP_ITERATIONS), silently. 70,000 triangles in one cell make every ray pass
     that: on llvmpipe the trace (or the Line Space build) must fail naming the limit, never
     report misses; drivers without the limit must agree with Embree."""
-    rng = np.random.default_rng(2)
-    v = (rng.uniform(0.2, 0.8, (70000, 1, 3)) + rng.normal(0, 0.002, (70000, 3, 3))).reshape(-1, 3)
-    # One far triangle stretches the bounds, so the cloud stays in one cell of a 2^3 octree too.
-    v = np.vstack([v, [[9.0, 9.0, 9.0], [9.5, 9.0, 9.0], [9.0, 9.5, 9.0]]])
-    scene = Scene("dense-cell", v.astype(np.float32), np.arange(3 * 70001, dtype=np.uint32).reshape(-1, 3), "test")
-    o = np.tile(np.float32([[0.5, 0.5, -1.0]]), (64, 1)) + rng.uniform(-0.05, 0.05, (64, 3)).astype(np.float32)
-    rays = RaySet("into-the-cell", o, np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1)))
+    scene, rays = dense_cell_case(70000)
     res = (2, 2, 2)
     llvmpipe = "llvmpipe" in str(device.info().get("device", ""))
     try:
