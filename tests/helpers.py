@@ -46,3 +46,20 @@ def explain(out: dict, limit: int = 5) -> str:
     return "; ".join(f"ray {i} ({cats[i]}) o={rays.origins[i].tolist()} d={rays.directions[i].tolist()}: "
                      f"backend {hits.prim_ids[i]}@{hits.distances[i]:.7g}, embree {ref_p[i]}@{ref_t[i]:.7g}"
                      for i in out["unexplained"][:limit])
+
+
+def dense_cell_case(triangles: int = 70000):
+    """A cloud of `triangles` small triangles in one cell (one far triangle stretches the bounds,
+    so the cloud stays in one cell of a 2^3 octree too) and 64 rays into it: llvmpipe's loop
+    budget of 65535 iterations per invocation (LP_MAX_TGSI_LOOP_ITERATIONS) cannot test them all.
+    Returns (scene, rays)."""
+    from lsbench.inputs.rays import RaySet
+    from lsbench.inputs.scene import Scene
+
+    rng = np.random.default_rng(2)
+    v = (rng.uniform(0.2, 0.8, (triangles, 1, 3)) + rng.normal(0, 0.002, (triangles, 3, 3))).reshape(-1, 3)
+    v = np.vstack([v, [[9.0, 9.0, 9.0], [9.5, 9.0, 9.0], [9.0, 9.5, 9.0]]])
+    faces = np.arange(3 * (triangles + 1), dtype=np.uint32).reshape(-1, 3)
+    scene = Scene("dense-cell", v.astype(np.float32), faces, "test")
+    o = np.tile(np.float32([[0.5, 0.5, -1.0]]), (64, 1)) + rng.uniform(-0.05, 0.05, (64, 3)).astype(np.float32)
+    return scene, RaySet("into-the-cell", o, np.tile(np.float32([[0.0, 0.0, 1.0]]), (64, 1)))

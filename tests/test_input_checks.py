@@ -91,7 +91,7 @@ BAD_SCENARIOS = {
                         ['resolutions[0] = "4by4"', 'a positive integer or "RxRyRz"']),
     "ls-n-negative": (scenario_text(case="ls_n = [1, -1]"), ["ls_n[1] = -1", "is not an integer >= 0"]),
     "ls-min-candidates-text": (scenario_text(case='ls_min_candidates = "many"'),
-                               ['ls_min_candidates = "many"', "an integer >= 0, or a non-empty list"]),
+                               ['ls_min_candidates = "many"', 'an integer >= 0, or "auto"', "or a non-empty list"]),
     "missing-resolutions": (scenario_text().replace("resolutions = [4]\n", ""),
                             ["missing resolutions", "needed: scenes, structures, resolutions"]),
     "camera-fov-0": (scenario_text(case="camera = { eye = [0, 0, 3], target = [0, 0, 0], fov = 0 }"),

@@ -8,9 +8,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION, BadValue, check_camera, check_image_size,
-                                   integer, number, ray_param_text, resolve_ray_params, writable_folder)
-from lsbench.inputs.scenario import LEAF_SIZE, LS_MIN_CANDIDATES, LS_N, RUN_RULES
+from lsbench.inputs.checks import (FOV, MAX_IMAGE_RAYS, RESOLUTION_OR_AUTO, BadValue, check_camera,
+                                   check_image_size, integer, number, ray_param_text, resolve_ray_params,
+                                   writable_folder)
+from lsbench.inputs.scenario import LEAF_SIZE, LS_MIN_CANDIDATES_OR_AUTO, LS_N_OR_AUTO, RUN_RULES
 
 
 class UsageError(BadValue):
@@ -75,6 +76,7 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heatmaps", action="store_true", help="write heatmaps for every case")
     p.add_argument("--memory-budget", type=RUN_RULES["memory_budget_mb"].flag, metavar="MiB",
                    help="host memory limit per case worker")
+    add_budget_argument(p)
     cluster = p.add_argument_group("sweeps on a Ray cluster (pip install 'lsbench[cluster]'; docs/cluster.md)")
     cluster.add_argument("--cluster", type=cluster_address, metavar="ADDRESS",
                          help="run each case as a Ray task on the cluster at ADDRESS: auto, HOST:PORT, "
@@ -84,6 +86,12 @@ def add_scenario_arguments(p: argparse.ArgumentParser) -> None:
                                                   "(ray start --resources): pins cases to the nodes that carry it")
     cluster.add_argument("--cluster-retries", type=CLUSTER_RETRIES.flag, default=2, metavar="N",
                          help="run a case again on another node this many times when its node dies (default 2)")
+
+
+def add_budget_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--budget", type=RUN_RULES["budget_mib"].flag, metavar="MiB",
+                   help="device-memory budget of each structure: a case whose structure needs more fails; "
+                        "\"auto\" settings are chosen under it (docs/fit.md). Not the host --memory-budget")
 
 
 CLUSTER_RETRIES = integer(0)
@@ -117,12 +125,14 @@ def add_case_arguments(p: argparse.ArgumentParser, size: str = "256x256") -> Non
     p.add_argument("--scene", required=True, help="built-in name or mesh file")
     p.add_argument("--structure", required=True, choices=backends.structure_names())
     p.add_argument("--backend", required=True, choices=list(backends.BACKENDS))
-    p.add_argument("--resolution", type=RESOLUTION.flag, default="64", help="64 (cubic) or RxRyRz")
-    p.add_argument("--ls-n", type=LS_N.flag, default=0, help="Line Space patches per face edge")
-    p.add_argument("--ls-min-candidates", type=LS_MIN_CANDIDATES.flag, default=0,
-                   help="only cells with more candidates get a Line Space")
+    p.add_argument("--resolution", type=RESOLUTION_OR_AUTO.flag, default="64",
+                   help="64 (cubic), RxRyRz, or auto (the cost model's choice under --budget)")
+    p.add_argument("--ls-n", type=LS_N_OR_AUTO.flag, default=0, help="Line Space patches per face edge, or auto")
+    p.add_argument("--ls-min-candidates", type=LS_MIN_CANDIDATES_OR_AUTO.flag, default=0,
+                   help="only cells with more candidates get a Line Space; or auto")
     p.add_argument("--leaf-size", type=LEAF_SIZE.flag, default=0,
                    help="bvh, bvh-ls: most triangles per leaf (0: the structure's default)")
+    add_budget_argument(p)
     p.add_argument("--size", type=checked_text(parse_size), default=size,
                    help=f"image size WxH for camera rays (W*H <= {MAX_IMAGE_RAYS})")
     p.add_argument("--rays", default="primary",

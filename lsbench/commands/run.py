@@ -59,12 +59,14 @@ def prepare_out_dir(path: Path) -> Path:
 
 
 def load_run_scenario(args, gpu: bool = False):
-    """The scenario the arguments name, at its GPU image size when `gpu`, with --memory-budget."""
+    """The scenario the arguments name, at its GPU image size when `gpu`, with --memory-budget and --budget."""
     from lsbench.inputs.scenario import load_scenario
 
     scenario = load_scenario(args.scenario, gpu=gpu)
     if args.memory_budget:
         scenario.settings = dataclasses.replace(scenario.settings, memory_budget_mb=args.memory_budget)
+    if args.budget:
+        scenario.settings = dataclasses.replace(scenario.settings, budget_mib=args.budget)
     return scenario
 
 

@@ -37,7 +37,7 @@ def run(args) -> int:
     case = case_from_args(args)
     load_scene(args.scene)  # bad input fails here, before any worker starts
     settings = RunSettings(width=case.width, height=case.height, rays=args.rays, repeats=args.repeats,
-                           warmup=args.warmup, timeout_seconds=args.timeout)
+                           warmup=args.warmup, timeout_seconds=args.timeout, budget_mib=args.budget)
     env = record_env()
     result = timing_stability(case, settings, args.processes, env,
                               log=lambda m: print(m, file=sys.stderr, flush=True))

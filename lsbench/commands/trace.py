@@ -48,7 +48,7 @@ def run(args) -> int:
     rays = make_rays(args.rays, scene, case.width, case.height, case.camera_object(), case.ray_params)
     settings = RunSettings(width=case.width, height=case.height, rays=args.rays,
                            ray_params=dict(case.ray_params), repeats=args.repeats,
-                           warmup=args.warmup, rel_tol=args.rel_tol)
+                           warmup=args.warmup, rel_tol=args.rel_tol, budget_mib=args.budget)
     t0 = time.perf_counter()
     rec = execute(case, settings, record_env(), dump_hits=args.dump_hits, heatmap_dir=args.heatmaps,
                   scene=scene, rays=rays)

@@ -148,6 +148,23 @@ RESOLUTION = Rule('a positive integer or "RxRyRz" (64 or "64x32x16")',
                   or (isinstance(v, str) and _RESOLUTION_TEXT.fullmatch(v) is not None))
 
 
+# A setting the model picks (lsbench/model/cost.py, docs/fit.md): resolution, ls_n and
+# ls_min_candidates may be "auto", chosen per case under the device-memory budget (budget_mib).
+AUTO = "auto"
+
+
+def or_auto(rule: Rule) -> Rule:
+    """`rule`'s values, or "auto"."""
+    return Rule(f'{rule.allowed}, or "auto" (chosen by the cost model under the budget)',
+                lambda v: v == AUTO or rule.accepts(v),
+                lambda text: AUTO if text.strip().lower() == AUTO else rule.from_text(text))
+
+
+RESOLUTION_OR_AUTO = or_auto(RESOLUTION)
+# The device-memory budget of a case's structure (budget_mib, --budget), in MiB.
+BUDGET = number(0, low_open=True)
+
+
 def check_list(name: str, value: Any, item: Rule) -> list:
     """A key that takes one value or a non-empty list of them ("backends", "ls_n", ...)."""
     if not isinstance(value, list):

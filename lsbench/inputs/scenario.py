@@ -14,6 +14,8 @@
     max_unexplained = 0      # the gate: most unexplained disagreements a case may have
     min_agreement = 0.9999   # optional extra gate check: (agree + tie) / rays per case
     timeout_seconds = 600    # per case, in its worker process
+    budget_mib = 256         # device-memory budget of each case's structure (MiB): a built
+                             # structure over it fails its case; "auto" settings are chosen under it
     heatmaps = false         # write per-case heatmaps (profiling kernels)
     embree_timing = true     # record Embree's rays/s on the same rays (the CPU reference)
     [[cases]]                # each block is a cross product
@@ -24,6 +26,9 @@
     ls_n = [0]               # Line Space N (0 = none)
     ls_min_candidates = 0    # or a list: only cells with more candidates get a Line Space
     leaf_size = [4, 8]       # bvh, bvh-ls: most triangles per leaf (0 = the structure's default)
+                             # resolutions, ls_n, ls_min_candidates may be (or list) "auto": the
+                             # cost model picks the cheapest under the budget (docs/fit.md)
+    budget_mib = [64, 256]   # optional: this block's budget(s) instead of [run]'s
     rays = ["shadow", "ao"]  # optional: this block's ray sets instead of [run]'s
     ray_params = { samples = 2 }  # optional: their parameters (default: [run]'s when the block
                              # names no rays, else none); every listed set must take each key
@@ -38,10 +43,11 @@ table) is an error with a did-you-mean, as is a value of the wrong TOML type (`r
 `width = 32.5`, `heatmaps = 1`) or out of range (`repeats = 0`, `min_agreement = 1.5`,
 `backends = []`, a camera fov of 180). Key by key: width/height/gpu_* integers >= 1 with
 width*height <= 2^26 rays; repeats >= 1, warmup >= 0; rel_tol finite >= 0; max_unexplained an
-integer >= 0; min_agreement in [0, 1]; timeout_seconds and memory_budget_mb > 0; heatmaps, embree_timing true/false; scenes,
-structures, backends, resolutions, ls_n, ls_min_candidates, leaf_size, rays one value or a non-empty list
-(leaf_size 0 or one of 1, 2, 4, ..., 128, 255; bvh and bvh-ls ignore resolutions: a block of
-them only needs none, and a mixed block gives them one case, at its first resolution);
+integer >= 0; min_agreement in [0, 1]; timeout_seconds, memory_budget_mb and budget_mib > 0; heatmaps, embree_timing true/false; scenes,
+structures, backends, resolutions, ls_n, ls_min_candidates, leaf_size, budget_mib, rays one value or a
+non-empty list (resolutions, ls_n, ls_min_candidates also "auto"; leaf_size 0 or one of 1, 2, 4, ...,
+128, 255; bvh and bvh-ls ignore resolutions: a block of them only needs none, and a mixed block gives
+them one case, at its first resolution);
 camera eye/target/up 3 finite numbers each, fov in (0, 180) degrees; ray_params a table whose keys
 the ray set takes, each value by its rule (e.g. samples an integer >= 1, light 3 finite numbers).
 """
@@ -53,8 +59,9 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from lsbench.inputs.checks import (FLAG, RESOLUTION, TEXT, BadValue, Rule, check_camera, check_image_size,
-                                   check_keys, check_list, integer, leaf_size_rule, number, one_of,
+from lsbench.inputs.checks import (AUTO, BUDGET, FLAG, RESOLUTION_OR_AUTO, TEXT, BadValue, Rule, check_camera,
+                                   check_image_size, check_keys, check_list, integer, leaf_size_rule, number,
+                                   one_of, or_auto,
                                    resolve_ray_params, show_typed)
 from lsbench.inputs.rays import RAY_SETS
 from lsbench.paths import scenes_dir, shipped_scenario
@@ -84,7 +91,8 @@ class RunSettings:
     min_agreement: float | None = None  # checked only where a scenario states one
     timeout_seconds: float = 600.0
     heatmaps: bool = False
-    memory_budget_mb: float | None = None
+    memory_budget_mb: float | None = None  # host RLIMIT_AS of each case worker (runner.py)
+    budget_mib: float | None = None  # device-memory budget of each case's structure (execute.py)
     embree_timing: bool = True  # also time Embree (CPU, all cores) on the same rays
 
 
@@ -120,14 +128,30 @@ class Case:
     structure: str
     backend: str
     resolution: str  # "64" or "64x32x16"
-    ls_n: int = 0
-    ls_min_candidates: int = 0
+    ls_n: int | str = 0  # or "auto" (as resolution and ls_min_candidates)
+    ls_min_candidates: int | str = 0
     rays: str = "primary"
     width: int = 64
     height: int = 64
     camera: tuple | None = None  # ((eye), (target), (up), fov_deg) or None for the scene default
     ray_params: tuple = ()  # sorted (key, value) pairs, defaults filled in (checks.resolve_ray_params)
     leaf_size: int = 0  # bvh, bvh-ls: most triangles per leaf (0: the structure's default)
+    budget_mib: float | None = None  # the block's device-memory budget; None: the run's (RunSettings)
+
+    @property
+    def auto(self) -> tuple[str, ...]:
+        """The parameters the cost model picks for this case (those that are "auto" and that the
+        structure takes), in BuildParams order; () for a case built as given."""
+        from lsbench.backends import structure_info
+
+        try:
+            info = structure_info(self.structure)
+        except ValueError:
+            return ()
+        # a BVH has no grid resolution, and the cost model knows the grid and octree families only
+        named = (() if info.leaf_size else (("resolution", self.resolution),)) + (
+            (("ls_n", self.ls_n), ("ls_min_candidates", self.ls_min_candidates)) if info.line_space else ())
+        return tuple(name for name, value in named if value == AUTO)
 
     @property
     def query(self) -> str:
@@ -143,6 +167,8 @@ class Case:
         from lsbench.backends import BuildParams, structure_info
         from lsbench.backends.structures.base import parse_resolution
 
+        if self.auto:
+            raise ValueError(f"{', '.join(self.auto)} = \"auto\": chosen when the case runs (model/cost.py)")
         info = structure_info(self.structure)
         line_space = info.line_space
         return BuildParams(resolution=parse_resolution(self.resolution),
@@ -160,8 +186,11 @@ class Case:
         from lsbench.backends.structures.base import format_resolution
 
         try:
-            params = self.build_params()
+            # "auto" stays "auto" (the chosen setting is in the record); the rest as built
+            params = dataclasses.replace(self, **{name: 1 for name in self.auto}).build_params()
             res, n, k = format_resolution(params.resolution), params.ls_n, params.ls_min_candidates
+            res, n, k = (AUTO if name in self.auto else value
+                         for name, value in zip(("resolution", "ls_n", "ls_min_candidates"), (res, n, k)))
             leaf = params.leaf_size
         except ValueError:  # a resolution or structure that does not parse: the case fails when run
             res, n, k = self.resolution, self.ls_n, self.ls_min_candidates
@@ -175,7 +204,9 @@ class Case:
             rays += "@cam(" + ",".join(_exact(v) for v in (*eye, *target, *up, fov)) + ")"
         # The leaf size only for the structures that have one, so the other cases keep their keys.
         leaves = f"|l{leaf}" if leaf else ""
-        return f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}{leaves}"
+        budget = f"|b{_exact(self.budget_mib)}" if self.budget_mib is not None else ""
+        return (f"{input_label(self.scene)}|{rays}|{self.structure}|{self.backend}|r{res}|n{n}|k{k}"
+                f"{leaves}{budget}")
 
     def camera_object(self):
         from lsbench.inputs.scene import Camera
@@ -207,16 +238,19 @@ RUN_RULES: dict[str, Rule] = {
     "repeats": integer(1), "warmup": integer(0),
     "rel_tol": number(0), "max_unexplained": integer(0), "min_agreement": number(0, 1),
     "timeout_seconds": number(0, low_open=True), "memory_budget_mb": number(0, low_open=True),
+    "budget_mib": BUDGET,
     "heatmaps": FLAG, "embree_timing": FLAG,
 }
 
 # What each key of a [[cases]] block allows: one value or a non-empty list of them (camera
 # aside). Structures and backends come from their catalogues, so these are built on use.
 REQUIRED_CASE_KEYS = ("scenes", "structures", "resolutions")
-CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "leaf_size", "camera", "rays",
-             "ray_params")
+CASE_KEYS = (*REQUIRED_CASE_KEYS, "backends", "ls_n", "ls_min_candidates", "leaf_size", "budget_mib", "camera",
+             "rays", "ray_params")
 LS_N = integer(0)  # 0 = the structure's own default (a Line Space structure builds N = 1)
 LS_MIN_CANDIDATES = integer(0)
+LS_N_OR_AUTO = or_auto(LS_N)
+LS_MIN_CANDIDATES_OR_AUTO = or_auto(LS_MIN_CANDIDATES)
 LEAF_SIZE = leaf_size_rule()
 CAMERA_KEYS = ("eye", "target", "up", "fov")
 TOP_KEYS = ("name", "run", "cases")
@@ -281,10 +315,11 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
     scenes = [expand_scene(s) for s in check_list(f"{where}scenes", block["scenes"], TEXT)]
     names = check_list(f"{where}structures", block["structures"], one_of(structure_names(), "structure"))
     backs = check_list(f"{where}backends", block.get("backends", list(BACKENDS)), one_of(BACKENDS, "backend"))
-    resolutions = check_list(f"{where}resolutions", block.get("resolutions", ["1"]), RESOLUTION)
-    ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N)  # N for Line Space structures
-    ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES)
+    resolutions = check_list(f"{where}resolutions", block.get("resolutions", ["1"]), RESOLUTION_OR_AUTO)
+    ns = check_list(f"{where}ls_n", block.get("ls_n", [2]), LS_N_OR_AUTO)  # N for Line Space structures
+    ks = check_list(f"{where}ls_min_candidates", block.get("ls_min_candidates", 0), LS_MIN_CANDIDATES_OR_AUTO)
     leaf_sizes = check_list(f"{where}leaf_size", block.get("leaf_size", 0), LEAF_SIZE)  # BVHs only
+    budgets = check_list(f"{where}budget_mib", block["budget_mib"], BUDGET) if "budget_mib" in block else [None]
     camera = _camera(block["camera"], where) if "camera" in block else None
     if "rays" in block:
         ray_sets = check_list(f"{where}rays", block["rays"], RUN_RULES["rays"])
@@ -304,8 +339,10 @@ def _block_cases(block, where: str, settings: RunSettings, width: int, height: i
                         for n in (ns if line_space else [0]):
                             for k in (ks if line_space else [0]):
                                 for leaf in (leaf_sizes if structure_info(s).leaf_size else [0]):
-                                    cases.append(Case(scene, s, b, str(r), n, k, rays, width, height,
-                                                      camera, ray_params[rays], leaf))
+                                    for budget in budgets:
+                                        cases.append(Case(scene, s, b, str(r), n, k, rays, width, height,
+                                                          camera, ray_params[rays], leaf_size=leaf,
+                                                          budget_mib=None if budget is None else float(budget)))
     return cases
 
 

@@ -60,6 +60,8 @@ class Record:
     backend_version: str | None = None
     node: dict | None = None  # the cluster node that ran the case (lsbench/running/cluster.py)
     settings: dict = field(default_factory=dict)
+    budget_mib: float | None = None  # device-memory budget of the structure (case's, else the run's)
+    auto: dict | None = None  # an "auto" case: what the cost model chose and why (lsbench/model/cost.py)
     # what came out
     status: str = "failed"
     reason: str = ""
@@ -84,6 +86,7 @@ class Record:
     candidate_tests_per_ray: float | None = None
     linespace_lookups_per_ray: float | None = None
     work_counters_error: str | None = None
+    predicted: dict | None = None  # an "auto" case: the model's prediction of the chosen setting
     heatmaps: dict = field(default_factory=dict)
     image_delta_e_mean: float | None = None  # lsbench/oracle/image.py
     image_delta_e_max: float | None = None
@@ -136,7 +139,8 @@ REQUIRED_FIELDS = ("key", "status")
 # RunSettings that do not change what an ok case measures, so they are not part of a record's
 # `settings`: the case's own fields carry what ran (image size, ray set), the gate's thresholds
 # (min_agreement, max_unexplained) are verdicts applied when judging, timeout and memory budget
-# only decide whether a case fails
+# only decide whether a case fails (the device-memory budget_mib is a result setting where it is set:
+# "auto" cases choose under it)
 # (failed cases are retried), and a record with heatmaps serves a run without them (one without
 # is redone when they are wanted). Any other setting, including one added later, counts as
 # changing results.
@@ -148,6 +152,8 @@ def result_settings(settings) -> dict:
     """The run settings (lsbench.inputs.scenario.RunSettings) that change a case's results, as
     a stored record holds them (through JSON: a tuple setting compares as the list it is read as)."""
     chosen = {k: v for k, v in dataclasses.asdict(settings).items() if k not in NOT_RESULT_SETTINGS}
+    if chosen.get("budget_mib") is None:  # no device-memory budget: records of runs before it stand
+        chosen.pop("budget_mib", None)
     return json.loads(json.dumps(chosen, default=str))
 
 

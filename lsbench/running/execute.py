@@ -26,8 +26,9 @@ def new_record(case: Case, settings: RunSettings, env: dict | None = None, input
     try:
         params = case.build_params()
         resolution, n, k, leaf = params.resolution, params.ls_n, params.ls_min_candidates, params.leaf_size
-    except ValueError:  # a resolution or structure that does not parse: the case fails
-        resolution, n, k, leaf = (None, None, None), case.ls_n, case.ls_min_candidates, case.leaf_size
+    except ValueError:  # "auto" (chosen when it runs), or a resolution or structure that does not parse
+        resolution, leaf = (None, None, None), case.leaf_size
+        n, k = (None if v == "auto" else v for v in (case.ls_n, case.ls_min_candidates))
     camera = None
     if case.camera is not None:
         eye, target, up, fov = case.camera
@@ -88,6 +89,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenes import load_scene
     from lsbench.oracle.classifier import judge_hits
+    from lsbench.model.cost import bytes_at_least, resolve_case
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -100,9 +102,34 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         device = backends.get_device(case.backend)
         info = device.info()
         rec.update(device=info["device"], driver=info["driver"], backend_version=info["backend_version"])
-        built = backends.build(device, case.structure, scene, case.build_params())
+        budget = case.budget_mib if case.budget_mib is not None else settings.budget_mib
+        budget_bytes = int(budget * 2**20) if budget else None
+        rec.update(budget_mib=budget)
+        # "auto" parameters: the cost model picks them under the budget (lsbench/model/cost.py)
+        params, choice = resolve_case(case, device, scene, rays, ref_t, budget_bytes)
+        if choice is not None:
+            rec.update(auto=choice.record())
+        if params is None:
+            raise DeviceLimitError(choice.no_fit_reason(budget))
+        if choice is not None:
+            rec.update(resolution_x=params.resolution[0], resolution_y=params.resolution[1],
+                       resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+        if budget_bytes is not None and choice is None:
+            # A setting that cannot fit fails before its build (a Line Space build can take minutes)
+            at_least, exact = bytes_at_least(device, case.structure, scene, params)
+            if at_least > budget_bytes:
+                rec.update(predicted={"memory_bytes": at_least, "memory_bytes_exact": exact})
+                raise DeviceLimitError(
+                    f"the structure needs {'' if exact else 'at least '}{at_least / 2**20:.1f} MiB (predicted from "
+                    f"the count pass, not built), over the device-memory budget of {budget:g} MiB (budget_mib, --budget)")
+        built = backends.build(device, case.structure, scene, params)
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
+        if choice is not None:
+            rec.update(predicted=choice.predicted(device, built))
+        if budget_bytes is not None and built.memory_bytes > budget_bytes:
+            raise DeviceLimitError(f"the structure takes {built.memory_bytes / 2**20:.1f} MiB, over the "
+                                   f"device-memory budget of {budget:g} MiB (budget_mib, --budget)")
         hits = backends.trace(built, rays)
         rec.update(trace_slices=hits.slices)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)

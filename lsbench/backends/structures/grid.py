@@ -51,6 +51,12 @@ def build_voxel_lists(device: Device, scene_buffers: dict, n_tris: int, geometry
     return {"voxel_offsets": offsets, "voxel_tris": tris}, stats
 
 
+def predicted_bytes(voxels: int, references: int) -> dict[str, int]:
+    """The bytes of each buffer build_voxel_lists returns, from the count pass's statistics
+    (lsbench/model/bytes.py): exact, as Device.alloc sizes them (4 bytes at least)."""
+    return {"voxel_offsets": 4 * (voxels + 1), "voxel_tris": max(4 * references, 4)}
+
+
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
           params: BuildParams) -> BuildResult:
     buffers, stats = build_voxel_lists(device, scene_buffers, n_tris, geometry)

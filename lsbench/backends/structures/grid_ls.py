@@ -82,6 +82,19 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     return BuildResult(buffers, u, ls.trace_spec(TRACE_GRID_LS), stats)
 
 
+def predicted_bytes(device: Device, voxels: int, references: int, non_empty: int, ls_cells: int,
+                    n: int, candidates: int) -> dict[str, int]:
+    """The bytes of each buffer build returns (lsbench/model/bytes.py): the grid's lists (the
+    plain list shrinks to 4 bytes when every non-empty voxel has a Line Space), the voxel -> Line
+    Space index, and the Line Spaces of `ls_cells` voxels holding `candidates` in all."""
+    out = grid.predicted_bytes(voxels, references)
+    if ls_cells == non_empty:
+        out["voxel_tris"] = 4
+    out["ls_ids"] = 4 * (voxels + 1)
+    out.update(linespace.predicted_bytes(device, ls_cells, n, candidates))
+    return out
+
+
 def _non_empty_voxels(device: Device, voxel_offsets, n_vox: int, u: dict) -> int:
     """Voxels with at least one candidate (for the stats), counted on the device with the same
     flags kernel at K = 0."""

@@ -350,6 +350,21 @@ def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro:
     return other, {new: bufs[old] for old, new in zip(split.names, other.names)}
 
 
+def predicted_bytes(device: Device, cells: int, n: int, candidates: int) -> dict[str, int]:
+    """The bytes of each buffer build_linespaces returns for `cells` Line Spaces of N = n holding
+    `candidates` shaft candidates in all (lsbench/model/bytes.py): exact given `candidates`, which
+    a model estimates from a sample of cells before the build. Split arrays as split_array
+    splits them (DeviceLimitError where they would need more buffers than LS_MAX_CHUNKS)."""
+    n_shafts = cells * shafts_per_cell(n)
+    if n_shafts == 0:
+        return {"ls_shaft_offsets": 4, "ls_shaft_tris": 4}
+    out = {}
+    for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1),
+                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidates)):
+        out.update({name: max(4 * array.chunk_entries(i), 4) for i, name in enumerate(array.names)})
+    return out
+
+
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
                      n: int) -> LineSpaces:
     """Line Spaces of all cells: cull masks -> count -> scan -> fill, all on the device, in batches

@@ -63,6 +63,15 @@ class LineSpaceOctree:
         for spec in (LEAF_FLAGS, LEAF_CELLS):
             device.compile(spec)
 
+    def predicted_bytes(self, device: Device, nodes: int, leaves: int, references: int, ls_cells: int,
+                        n: int, candidates: int) -> dict[str, int]:
+        """The bytes of each buffer build returns (lsbench/model/bytes.py): the octree's, the leaf
+        -> Line Space index, and the Line Spaces of `ls_cells` leaves holding `candidates` in all."""
+        out = svo.predicted_bytes(self.layout, nodes, leaves, references)
+        out["ls_ids"] = 4 * (leaves + 1)
+        out.update(linespace.predicted_bytes(device, ls_cells, n, candidates))
+        return out
+
     def build(self, device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
               params: BuildParams) -> BuildResult:
         svo.octree_depth(params.resolution)  # ValueError before any work

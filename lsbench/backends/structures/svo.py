@@ -93,6 +93,15 @@ def level_words(depth: int) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(words)]).astype(np.uint32)
 
 
+def predicted_bytes(layout: str, nodes: int, leaves: int, references: int) -> dict[str, int]:
+    """The bytes of each buffer build_octree returns for `layout`, from the non-empty cells per
+    level (nodes: levels 0..depth-1, leaves: the last level) and the leaf level's references
+    (lsbench/model/bytes.py): exact, as allocated below."""
+    nodes_name, node_bytes, _ = LAYOUTS[layout]
+    return {nodes_name: node_bytes * max(nodes, 1), "leaves": 8 * max(leaves, 1),
+            "voxel_tris": max(4 * references, 4)}
+
+
 def prepare(device: Device) -> None:
     """Compile the build kernels (the trace kernel depends on the depth and compiles on its
     first launch, before any timed one)."""

@@ -1,0 +1,134 @@
+"""`lsbench fit`: measure the cost model's constants on this machine's devices (model/cost.py:
+seconds per ray = ray + step[family] x iterations + test x candidate tests + lookup x Line Space
+lookups) from a short calibration sweep, and store them per device (model/constants.py), where
+every "auto" case on that device then finds them.
+
+The sweep: every structure at a few settings on small built-in scenes (the same cases as `lsbench
+trace`, in this process), each with its work counters (iterations, tests, lookups per ray) and its
+device time per ray; a non-negative least-squares fit weighted by relative error gives the
+constants, and the stored file keeps each case's measured time beside the fitted one."""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+
+from lsbench.commands.common import checked_text, parse_size, say
+from lsbench.inputs.checks import writable_folder
+from lsbench.inputs.scenario import RUN_RULES
+
+NAME = "fit"
+HELP = "measure the cost model's constants per device (for \"auto\" settings) and store them"
+DEFAULT_SCENES = ("cornell", "spheres")
+# (structure, resolution, N): steps, tests and lookups in different proportions, so the fit can
+# tell the constants apart; small enough for llvmpipe and PoCL on two cores (~1-2 min a backend).
+CALIBRATION = (
+    ("grid", "4", 0), ("grid", "16", 0), ("grid", "64", 0),
+    ("svo", "16", 0), ("svo", "64", 0), ("esvo", "16", 0), ("esvo", "64", 0),
+    ("grid-ls", "8", 1), ("grid-ls", "16", 2), ("svo-ls", "16", 1), ("esvo-ls", "16", 2),
+)
+
+
+def setup_arguments(sub) -> None:
+    from lsbench import backends
+
+    p = sub.add_parser(NAME, help=HELP, description=__doc__)
+    p.add_argument("--backends", nargs="+", choices=list(backends.BACKENDS), default=list(backends.BACKENDS),
+                   metavar="BACKEND", help=f"devices to calibrate (default: {', '.join(backends.BACKENDS)})")
+    p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="SCENE",
+                   help=f"calibration scenes (default: {', '.join(DEFAULT_SCENES)})")
+    p.add_argument("--size", type=checked_text(parse_size), default="64x64", help="image size WxH (camera rays)")
+    p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=3, help="timed launches per case")
+    p.add_argument("--out-dir", type=writable_folder, metavar="DIR",
+                   help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")
+    p.add_argument("--json", action="store_true", help="print the stored constants as JSON")
+    p.add_argument("--check", metavar="RUN_DIR",
+                   help="calibrate nothing: print the fit check of a run of scenarios/fit-check.toml (each auto "
+                        "case beside the best swept setting under the same budget, lsbench/model/check.py)")
+    p.set_defaults(func=run)
+
+
+def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=say) -> dict:
+    """Run the calibration cases on `backend`; returns the file's contents (model/constants.py)
+    with the fitted constants, each case, and the fit's relative rms residual."""
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenario import Case, RunSettings
+    from lsbench.inputs.scenes import load_scene
+    from lsbench.model.constants import COLUMNS, design_row, fit_constants
+    from lsbench.running.environment import record_env
+    from lsbench.running.execute import execute
+
+    env = record_env()
+    settings = RunSettings(width=width, height=height, repeats=repeats, warmup=1, embree_timing=False)
+    rows, seconds, cases, device = [], [], [], None
+    for scene_name in scenes:
+        scene = load_scene(scene_name)
+        rays = make_rays("primary", scene, width, height)
+        for structure, resolution, n in CALIBRATION:
+            case = Case(scene_name, structure, backend, resolution, n, 0, "primary", width, height)
+            rec = execute(case, settings, env, scene=scene, rays=rays)
+            if rec["status"] != "ok" or rec.get("iterations_per_ray") is None:
+                log(f"  {case.key}: left out ({rec['reason'] or rec.get('work_counters_error')})")
+                continue
+            device = rec["device"]
+            per_ray = rec["trace_seconds"] / rec["ray_count"]
+            work = (rec["iterations_per_ray"], rec["candidate_tests_per_ray"], rec["linespace_lookups_per_ray"])
+            rows.append(design_row(structure, *work))
+            seconds.append(per_ray)
+            cases.append({"scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
+                          "iterations_per_ray": work[0], "candidate_tests_per_ray": work[1],
+                          "linespace_lookups_per_ray": work[2], "seconds_per_ray": per_ray})
+            log(f"  {case.key}: {per_ray * 1e9:.1f} ns/ray, {work[0]:.1f} steps, {work[1]:.1f} tests, "
+                f"{work[2]:.1f} lookups")
+    if len(rows) < len(COLUMNS):
+        raise RuntimeError(f"{backend}: only {len(rows)} calibration cases ran, fewer than the "
+                           f"{len(COLUMNS)} constants")
+    coef, residual = fit_constants(rows, seconds)
+    for case, row in zip(cases, rows):
+        case["fitted_seconds_per_ray"] = float(sum(c * v for c, v in zip(coef, row)))
+    c = dict(zip(COLUMNS, (float(v) for v in coef)))
+    return {"device": device, "backend": backend, "driver": rec.get("driver"), "commit": env.get("commit"),
+            "made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "ray": c["ray"], "step": {f: c[f"step_{f}"] for f in ("grid", "svo", "esvo")},
+            "test": c["test"], "lookup": c["lookup"], "residual": residual, "cases": cases}
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from lsbench.model.constants import save_constants
+
+    if args.check:
+        return print_check(args.check)
+    width, height = parse_size(args.size)
+    out = []
+    for backend in args.backends:
+        say(f"lsbench fit: {backend}, {len(CALIBRATION) * len(args.scenes)} calibration cases")
+        data = calibrate(backend, args.scenes, width, height, args.repeats)
+        path = save_constants(data, backend, data["device"], Path(args.out_dir) if args.out_dir else None)
+        say(f"{backend} ({data['device']}): ray {data['ray'] * 1e9:.1f} ns, step grid/svo/esvo "
+            + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in ("grid", "svo", "esvo"))
+            + f" ns, test {data['test'] * 1e9:.2f} ns, lookup {data['lookup'] * 1e9:.2f} ns; "
+            f"fit residual {100 * data['residual']:.0f} % rms; written {path}")
+        out.append(data)
+    if args.json:
+        print(json.dumps(out, indent=1))
+    return 0
+
+
+def print_check(run_dir: str) -> int:
+    """The fit-check table of a run folder; exit 1 when it holds no auto case."""
+    from lsbench.commands.common import UsageError
+    from lsbench.model.check import check_rows, check_table
+    from lsbench.results.store import read_run
+
+    try:
+        _, records = read_run(run_dir)
+    except FileNotFoundError as exc:
+        raise UsageError(f"--check: {exc}") from None
+    rows = check_rows(records)
+    if not rows:
+        say(f"{run_dir}: no auto case (run scenarios/fit-check.toml into it)")
+        return 1
+    for line in check_table(rows):
+        say(line)
+    return 0

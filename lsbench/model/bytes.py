@@ -1,0 +1,54 @@
+"""Predicted device bytes of a structure at one setting, from the statistics of model/stats.py,
+through each recipe's own predicted_bytes (backends/structures/*: the layout is written down once,
+beside the code that allocates it).
+
+Exact (equal to Built.memory_bytes, tests/test_fit.py): grid, svo, esvo from the count pass, and
+every buffer of the Line Space structures except the shaft candidates. Those (ls_shaft_tris) are an
+estimate before the build: the candidates per reference of a sample of cells (stats.LineSpaceSample)
+times the references of the cells that get a Line Space; `exact` says which the prediction is.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from lsbench.backends.device import Device
+from lsbench.backends.structures import STRUCTURES, grid, grid_ls, svo
+from lsbench.model.stats import LineSpaceSample, VoxelCounts
+
+
+@dataclass(frozen=True)
+class BytesPrediction:
+    buffers: dict  # name -> bytes
+    exact: bool  # False: the shaft candidates are estimated from a sample
+
+    @property
+    def total(self) -> int:
+        return int(sum(self.buffers.values()))
+
+
+def predict_bytes(device: Device, structure: str, counts: VoxelCounts, n: int = 0, k: int = 0,
+                  sample: LineSpaceSample | None = None, candidates: int | None = None) -> BytesPrediction:
+    """Bytes of `structure` built over counts.geometry (with N = n, K = k for a Line Space
+    structure). The shaft candidates: `candidates` when known (then the prediction is exact),
+    else estimated from `sample`."""
+    info = STRUCTURES[structure]
+    octree = info.cubic_power_of_two
+    if octree:
+        per_level = counts.level_cells()
+        nodes, leaves = sum(per_level[:-1]), per_level[-1]
+    if not info.line_space:
+        if octree:
+            return BytesPrediction(svo.predicted_bytes(structure, nodes, leaves, counts.references), True)
+        return BytesPrediction(grid.predicted_bytes(counts.voxels, counts.references), True)
+    ls_cells, ls_refs = counts.above(k)
+    exact = candidates is not None
+    if not exact:
+        if sample is None:
+            raise ValueError(f"{structure}: a Line Space prediction needs a sample or the candidate count")
+        candidates = round(sample.candidates_per_reference(k) * ls_refs)
+    if octree:
+        buffers = info.recipe.predicted_bytes(device, nodes, leaves, counts.references, ls_cells, n, candidates)
+    else:
+        buffers = grid_ls.predicted_bytes(device, counts.voxels, counts.references, counts.non_empty,
+                                          ls_cells, n, candidates)
+    return BytesPrediction(buffers, exact)

@@ -1,0 +1,94 @@
+"""The fit check (issue 17, scenarios/fit-check.toml): each auto case beside the best ok case of
+the fixed settings swept for the same scene, rays, structure, backend and budget (a swept case over
+the budget failed, so the best ok one is the best that fits), and the time the choice took beside
+the sweep's."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class CheckRow:
+    scene: str
+    structure: str
+    backend: str
+    budget_mib: float | None
+    auto_setting: str
+    auto_rays_per_second: float | None  # None: the auto case failed
+    auto_mib: float | None
+    predicted_rays_per_second: float | None
+    best_setting: str | None  # None: no swept case ran ok
+    best_rays_per_second: float | None
+    best_mib: float | None
+    choose_seconds: float | None
+    sweep_seconds: float  # wall time of the swept cases, failed ones included
+    swept: int
+
+    @property
+    def same_setting(self) -> bool:
+        """The auto case built the best swept setting: their ratio is then the timing noise."""
+        return self.best_setting == self.auto_setting
+
+    @property
+    def ratio(self) -> float | None:
+        """Auto rays/s over the best swept rays/s (1.0 = as fast)."""
+        if self.auto_rays_per_second is None or not self.best_rays_per_second:
+            return None
+        return self.auto_rays_per_second / self.best_rays_per_second
+
+
+def setting_text(rec: dict) -> str:
+    if rec.get("resolution_x") is None:
+        return "-"
+    res = (rec["resolution_x"], rec["resolution_y"], rec["resolution_z"])
+    text = str(res[0]) if len(set(res)) == 1 else "x".join(map(str, res))
+    return text + (f" N={rec['ls_n']} K={rec['ls_min_candidates']}" if rec.get("ls_n") else "")
+
+
+def check_rows(records: list[dict]) -> list[CheckRow]:
+    def group(r):
+        return (r.get("scene"), r.get("rays_hash") or r.get("rays"), r.get("structure"), r.get("backend"),
+                r.get("budget_mib"))
+
+    swept: dict = {}
+    for r in records:
+        if not r.get("auto") and "|rauto|" not in r.get("key", "") and "|nauto|" not in r.get("key", "") \
+                and "|kauto|" not in r.get("key", ""):
+            swept.setdefault(group(r), []).append(r)
+    rows = []
+    for r in records:
+        if r.get("auto") is None and "auto|" not in r.get("key", ""):
+            continue
+        others = swept.get(group(r), [])
+        ok = [o for o in others if o.get("status") == "ok" and o.get("rays_per_second")]
+        best = max(ok, key=lambda o: o["rays_per_second"]) if ok else None
+        auto_ok = r.get("status") == "ok"
+        predicted = r.get("predicted") or {}
+        rows.append(CheckRow(
+            r.get("scene"), r.get("structure"), r.get("backend"), r.get("budget_mib"), setting_text(r),
+            r.get("rays_per_second") if auto_ok else None,
+            r["memory_bytes"] / 2**20 if auto_ok and r.get("memory_bytes") is not None else None,
+            predicted.get("rays_per_second"), setting_text(best) if best else None,
+            best["rays_per_second"] if best else None, best["memory_bytes"] / 2**20 if best else None,
+            (r.get("auto") or {}).get("choose_seconds"),
+            sum(o.get("wall_seconds") or 0.0 for o in others), len(others)))
+    return rows
+
+
+def check_table(rows: list[CheckRow]) -> list[str]:
+    from lsbench.report.format import text_table
+
+    def num(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    header = ("scene", "structure", "backend", "budget MiB", "auto setting", "auto Mrays/s", "auto MiB",
+              "predicted Mrays/s", "best swept", "best Mrays/s", "best MiB", "auto/best", "same", "choose s",
+              "sweep s")
+    body = [(r.scene, r.structure, r.backend, num(r.budget_mib, "g"), r.auto_setting,
+             num(r.auto_rays_per_second and r.auto_rays_per_second / 1e6, ".3f"), num(r.auto_mib, ".1f"),
+             num(r.predicted_rays_per_second and r.predicted_rays_per_second / 1e6, ".3f"),
+             r.best_setting or "-", num(r.best_rays_per_second and r.best_rays_per_second / 1e6, ".3f"),
+             num(r.best_mib, ".1f"), num(r.ratio, ".2f"), "=" if r.same_setting else "",
+             num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}")
+            for r in rows]
+    return text_table(header, body, right={3, 5, 6, 7, 9, 10, 11, 13, 14})

@@ -1,0 +1,426 @@
+"""The cost model: the work per ray of each structure at a setting, its device time per ray, and the
+cheapest setting that fits a device-memory budget (issue 17).
+
+Work, predicted from the scene's statistics (model/stats.py) and a sample of the case's own rays
+cut at Embree's closest hit (the walk of every traversal ends in the cell of the closest hit,
+shaders/common/trace.h: trace_done), walked on the host with the 3D-DDA of Amanatides & Woo (1987)
+over the counted grids (the model's arithmetic, not a structure: nothing here builds or traces):
+- grid (thesis 3.3.1): one iteration per voxel the ray crosses, the voxel's candidates tested;
+- svo / esvo (3.3.2, 5.2): one iteration per cell, on every level, that the ray crosses inside a
+  non-empty parent (both walks visit exactly those, front to back), the leaves' candidates tested;
+- a Line Space (3.3.3, 4): in a cell with more than K candidates one shaft lookup and that shaft's
+  candidates: count x the sample's candidates per reference of each shaft, weighted by how often the
+  sampled rays' chords through such cells take that shaft (an estimate: the sampled cells stand for
+  all); other cells test their list.
+
+Time per ray = ray + step[family] x iterations + test x candidate tests + lookup x lookups, the
+constants per device (model/constants.py: measured by `lsbench fit`, or documented defaults).
+
+Settings tried for "auto" (Ize, Shirley & Parker 2007: a uniform grid wants cells ~ lambda x
+triangles, per axis in proportion to the scene's extents): grids at lambda in GRID_LAMBDAS, non-cubic;
+octrees the cubic powers of two 2^OCTREE_LEVELS (thesis 6.3: they force the bounding cube); N in
+AUTO_NS; K in AUTO_KS. The cheapest predicted time that fits the budget wins; `choose` returns every
+option with its prediction (the record keeps the runners-up).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from lsbench.backends.structures import STRUCTURES
+from lsbench.backends.structures.base import GridGeometry
+from lsbench.backends.structures.linespace import shafts_per_cell
+from lsbench.model.bytes import BytesPrediction, predict_bytes
+from lsbench.model.constants import family, load_constants
+from lsbench.model.stats import LineSpaceSample, VoxelCounts
+
+GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
+OCTREE_LEVELS = tuple(range(3, 9))  # 8^3 .. 256^3
+LS_MAX_VOXELS = 2**21  # Line Space settings tried: at most 128^3 cells (15 N^4 shafts each)
+GRID_MAX_VOXELS = 2**24
+AUTO_NS = (1, 2, 3, 4)
+AUTO_KS = (0, 2, 4, 8, 16, 32, 64)
+RAY_SAMPLE = 512  # rays of the case walked per setting
+RUNNERS_UP = 5  # options kept in the record besides the chosen one
+
+
+@dataclass(frozen=True)
+class Work:
+    """Mean work per ray, as the profiling counters count it (iterations_per_ray, ...)."""
+    iterations: float
+    tests: float
+    lookups: float
+
+
+@dataclass(frozen=True)
+class RaySample:
+    """Rays in world space, each walked from tmin to t_end (its closest hit, else its tmax)."""
+    origins: np.ndarray  # (n, 3) float64
+    directions: np.ndarray
+    tmin: np.ndarray
+    t_end: np.ndarray
+
+
+def ray_sample(rays, hit_t: np.ndarray, size: int = RAY_SAMPLE) -> RaySample:
+    """`size` rays of the set, evenly strided, cut at Embree's closest hit `hit_t` (inf = miss)."""
+    idx = np.unique(np.linspace(0, rays.count - 1, min(size, rays.count)).round().astype(np.int64))
+    t_end = np.minimum(np.asarray(hit_t, np.float64)[idx], np.asarray(rays.tmax_array, np.float64)[idx])
+    return RaySample(np.asarray(rays.origins, np.float64)[idx], np.asarray(rays.directions, np.float64)[idx],
+                     np.full(len(idx), float(rays.tmin)), t_end)
+
+
+def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1, front
+    to back: (ray index, flat cell x + Rx (y + Ry z)) pairs. Vectorised over the rays."""
+    res = np.asarray(res, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(d != 0, 1.0 / np.where(d != 0, d, 1.0), np.inf)
+        ta, tb = -o * inv, (res - o) * inv
+        inside = (o >= 0) & (o <= res)
+        lo = np.where(d != 0, np.minimum(ta, tb), np.where(inside, -np.inf, np.inf))
+        hi = np.where(d != 0, np.maximum(ta, tb), np.where(inside, np.inf, -np.inf))
+    enter = np.maximum(t0, lo.max(axis=1))
+    leave = np.minimum(t1, hi.min(axis=1))
+    rows = np.flatnonzero(enter <= leave)
+    p = o[rows] + d[rows] * enter[rows, None]
+    cell = np.clip(np.floor(p), 0, res - 1).astype(np.int64)
+    dr, invr = d[rows], inv[rows]
+    step = np.where(dr > 0, 1, -1)
+    with np.errstate(invalid="ignore"):
+        next_t = np.where(dr > 0, (cell + 1 - o[rows]) * invr, np.where(dr < 0, (cell - o[rows]) * invr, np.inf))
+    delta = np.abs(invr)
+    leave = leave[rows]
+    r = res.astype(np.int64)
+    out_rays, out_cells = [], []
+    while len(rows):
+        out_rays.append(rows)
+        out_cells.append(cell[:, 0] + r[0] * (cell[:, 1] + r[1] * cell[:, 2]))
+        axis = np.argmin(next_t, axis=1)
+        k = np.arange(len(rows))
+        t_next = next_t[k, axis]
+        cell[k, axis] += step[k, axis]
+        next_t[k, axis] += delta[k, axis]
+        more = (t_next < leave) & np.all((cell >= 0) & (cell < r), axis=1)
+        rows, cell, next_t, step, delta, leave = (a[more] for a in (rows, cell, next_t, step, delta, leave))
+    if not out_rays:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_rays), np.concatenate(out_cells)
+
+
+def _in_grid(sample: RaySample, geometry: GridGeometry, scale: float = 1.0):
+    """The sample in grid space of `geometry` (cell edge `scale` voxels); t is unchanged."""
+    size = np.asarray(geometry.voxel_size, np.float64) * scale
+    return (sample.origins - np.asarray(geometry.origin)) / size, sample.directions / size
+
+
+def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int = 0,
+                 ls: LineSpaceSample | None = None) -> Work:
+    """Mean iterations, candidate tests and Line Space lookups per ray (module docstring)."""
+    info = STRUCTURES[structure]
+    n_rays = max(len(sample.t_end), 1)
+    ray_ids, cells, octree_iterations = _walk(counts, sample, info.cubic_power_of_two)
+    listed = counts.counts.ravel()[cells].astype(np.float64)
+    if info.line_space:
+        with_ls = listed > k
+        tests = listed[~with_ls].sum() + listed[with_ls].sum() * _shaft_tests_per_reference(
+            counts, sample, ray_ids[with_ls], cells[with_ls], k, ls)
+        lookups = float(np.count_nonzero(with_ls))
+    else:
+        tests, lookups = listed.sum(), 0.0
+    iterations = octree_iterations if info.cubic_power_of_two else len(cells)
+    return Work(iterations / n_rays, float(tests) / n_rays, lookups / n_rays)
+
+
+def _shaft_tests_per_reference(counts: VoxelCounts, sample: RaySample, ray_ids: np.ndarray, cells: np.ndarray,
+                               k: int, ls: LineSpaceSample | None) -> float:
+    """Candidates a ray tests in a Line Space cell, per reference of the cell: the sampled cells'
+    candidates per reference of each shaft (cells over K), weighted by how often the sample's rays
+    take that shaft in the Line Space cells they cross (their chords' shafts, linespace.h)."""
+    if ls is None or len(ls.cell_counts) == 0 or len(cells) == 0:
+        return 0.0
+    keep = ls.cell_counts > k
+    refs = int(ls.cell_counts[keep].sum())
+    if refs == 0:
+        return 0.0
+    per_shaft = ls.shaft_candidates[keep].sum(axis=0) / refs
+    o, d = _in_grid(sample, counts.geometry)
+    used = np.bincount(chord_shafts(o[ray_ids], d[ray_ids], cells, counts.geometry.resolution, ls.n),
+                       minlength=len(per_shaft))
+    return float(used @ per_shaft) / len(cells)
+
+
+def chord_shafts(o: np.ndarray, d: np.ndarray, cells: np.ndarray, res, n: int) -> np.ndarray:
+    """The shaft id (Listing 1: N^4 block(fs, fe) + N^2 patch_s + patch_e, fs < fe) of each ray's
+    chord through its cell (flat id), as ls_chord in shaders/common/linespace.h computes it."""
+    rx, ry, _ = (int(v) for v in res)
+    lo = np.stack([cells % rx, (cells // rx) % ry, cells // (rx * ry)], axis=1).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(d != 0, 1.0 / np.where(d != 0, d, 1.0), np.inf)
+        t_enter = np.where(d != 0, (lo + (d <= 0) - o) * inv, -np.inf)
+        t_exit = np.where(d != 0, (lo + (d > 0) - o) * inv, np.inf)
+    rows = np.arange(len(cells))
+    axis_in, axis_out = np.argmax(t_enter, axis=1), np.argmin(t_exit, axis=1)
+    t_in, t_out = t_enter[rows, axis_in], t_exit[rows, axis_out]
+    face_in = 2 * axis_in + (d[rows, axis_in] <= 0)
+    face_out = 2 * axis_out + (d[rows, axis_out] > 0)
+
+    def patch(t, axis):
+        q = o + d * t[:, None] - lo
+        u, v = q[rows, (axis + 1) % 3], q[rows, (axis + 2) % 3]
+        ui = np.clip(np.floor(u * n), 0, n - 1).astype(np.int64)
+        vi = np.clip(np.floor(v * n), 0, n - 1).astype(np.int64)
+        return n * vi + ui
+
+    p_in, p_out = patch(t_in, axis_in), patch(t_out, axis_out)
+    fs, fe = np.minimum(face_in, face_out), np.maximum(face_in, face_out)
+    ps, pe = np.where(face_in <= face_out, p_in, p_out), np.where(face_in <= face_out, p_out, p_in)
+    block = fs * (11 - fs) // 2 + (fe - fs - 1)
+    # a chord that enters and leaves through one face (grazing its plane) has no shaft: clamped
+    return np.clip(n**4 * block + n * n * ps + pe, 0, shafts_per_cell(n) - 1)
+
+
+def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndarray, np.ndarray, int]:
+    """The (ray, voxel) pairs of the voxels the sample's rays cross, and for an octree the cells of all levels inside a
+    non-empty parent; once per (counts, sample), whatever N and K."""
+    key = (id(sample), octree)
+    if key not in counts.walks:
+        o, d = _in_grid(sample, counts.geometry)
+        ray_ids, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+        iterations = 0
+        if octree:
+            levels = counts.occupancy
+            depth = len(levels) - 1
+            for level in range(1, depth + 1):
+                lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
+                _, level_cells = crossed_cells(lo, lc, sample.tmin, sample.t_end, (2**level,) * 3)
+                r = 2**level
+                x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
+                iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
+        counts.walks[key] = (ray_ids, cells, iterations)
+    return counts.walks[key]
+
+
+def seconds_per_ray(structure: str, work: Work, constants) -> float:
+    """Predicted device time of one ray (constants: model/constants.Constants)."""
+    return (constants.ray + constants.step[family(structure)] * work.iterations
+            + constants.test * work.tests + constants.lookup * work.lookups)
+
+
+# ---- settings tried, and the choice ---------------------------------------------------------
+def grid_resolutions(lo, hi, triangles: int, max_voxels: int) -> list[tuple[int, int, int]]:
+    """Non-cubic grids of about lambda x triangles cells, per axis in proportion to the extents
+    (Ize, Shirley & Parker 2007), for each lambda of GRID_LAMBDAS (duplicates and grids over
+    max_voxels left out)."""
+    extent = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 1e-9)
+    extent = np.maximum(extent, 1e-3 * float(np.linalg.norm(extent)))  # flat axes: GridGeometry's rule
+    out: list[tuple[int, int, int]] = []
+    for lam in GRID_LAMBDAS:
+        per_unit = (lam * max(triangles, 1) / float(np.prod(extent))) ** (1 / 3)
+        res = tuple(int(max(1, round(e * per_unit))) for e in extent)
+        if res not in out and math.prod(res) <= max_voxels:
+            out.append(res)
+    return out
+
+
+def octree_resolutions(max_voxels: int) -> list[tuple[int, int, int]]:
+    return [(2**level,) * 3 for level in OCTREE_LEVELS if 8**level <= max_voxels]
+
+
+@dataclass(frozen=True)
+class Option:
+    """One setting with its prediction."""
+    resolution: tuple[int, int, int]
+    ls_n: int
+    ls_min_candidates: int
+    bytes: BytesPrediction
+    work: Work
+    seconds_per_ray: float
+    fits: bool
+    limit: str = ""  # a device limit that rules the setting out (its Line Space sample met it)
+
+    def summary(self) -> dict:
+        out = {"resolution": "x".join(map(str, self.resolution)), "ls_n": self.ls_n,
+               "ls_min_candidates": self.ls_min_candidates, "predicted_bytes": self.bytes.total,
+               "bytes_exact": self.bytes.exact, "predicted_rays_per_second": _rate(self.seconds_per_ray),
+               "predicted_work": asdict(self.work), "fits_budget": self.fits}
+        if self.limit:
+            out["limit"] = self.limit
+        return out
+
+
+def _rate(seconds: float) -> float | None:
+    return 1.0 / seconds if seconds > 0 else None
+
+
+@dataclass
+class Choice:
+    structure: str
+    chosen: Option | None  # None: no option fits the budget
+    options: list[Option]
+    budget_bytes: int | None
+    seconds: float  # time spent choosing (count passes, Line Space samples, walks)
+    constants_source: str
+    requested: dict = field(default_factory=dict)
+    chosen_counts: VoxelCounts | None = None  # the chosen resolution's statistics (exact bytes once built)
+
+    def no_fit_reason(self, budget_mib: float | None) -> str:
+        """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried, or
+        the device limit that ruled the options out."""
+        sized = [o for o in self.options if o.bytes.buffers and not o.limit]
+        smallest = min(sized, key=lambda o: o.bytes.total) if sized and budget_mib else None
+        if smallest is None:
+            limit = next((o.limit for o in self.options if o.limit), "more buffers than the driver allows")
+            return f"auto {self.structure}: none of the {len(self.options)} settings tried can be built here ({limit})"
+        setting = smallest.summary()["resolution"] + (f", N={smallest.ls_n}, K={smallest.ls_min_candidates}"
+                                                      if smallest.ls_n else "")
+        return (f"auto {self.structure}: no setting fits the device-memory budget of {budget_mib:g} MiB; the "
+                f"smallest of the {len(self.options)} settings tried ({setting}) needs "
+                f"{smallest.bytes.total / 2**20:.1f} MiB")
+
+    def params(self):
+        from lsbench.backends.structures.base import BuildParams
+
+        c = self.chosen
+        return BuildParams(resolution=c.resolution, ls_n=c.ls_n, ls_min_candidates=c.ls_min_candidates)
+
+    def predicted(self, device, built) -> dict:
+        """The chosen option's prediction beside what `built` measured: the record's `predicted`
+        (the Line Space candidates counted by the build make memory_bytes_once_built exact)."""
+        c = self.chosen
+        exact = c.bytes.total
+        if STRUCTURES[self.structure].line_space and self.chosen_counts is not None:
+            exact = predict_bytes(device, self.structure, self.chosen_counts, c.ls_n, c.ls_min_candidates,
+                                  candidates=int(built.stats.get("candidate_references", 0))).total
+        return {"memory_bytes": c.bytes.total, "memory_bytes_exact": c.bytes.exact,
+                "memory_bytes_once_built": exact, "rays_per_second": _rate(c.seconds_per_ray),
+                "iterations_per_ray": c.work.iterations, "candidate_tests_per_ray": c.work.tests,
+                "linespace_lookups_per_ray": c.work.lookups}
+
+    def record(self) -> dict:
+        """What the record's `auto` field holds (docs/record.md)."""
+        ranked = sorted(self.options, key=lambda o: (not o.fits, bool(o.limit), o.seconds_per_ray))
+        runners = [o.summary() for o in ranked if o is not self.chosen][:RUNNERS_UP]
+        return {"requested": self.requested, "budget_bytes": self.budget_bytes,
+                "chosen": self.chosen.summary() if self.chosen else None,
+                "runners_up": runners, "options": len(self.options),
+                "options_over_budget": sum(not o.fits and not o.limit for o in self.options),
+                "options_over_device_limits": sum(bool(o.limit) for o in self.options),
+                "choose_seconds": self.seconds, "constants": self.constants_source}
+
+
+def choose(device, structure: str, scene, sample: RaySample, resolution="auto", ls_n="auto",
+           ls_min_candidates="auto", budget_bytes: int | None = None, constants=None) -> Choice:
+    """The cheapest setting of `structure` on `scene` that fits `budget_bytes` (None: no budget),
+    each "auto" parameter tried over its candidates, the others as given. Statistics are measured
+    on `device` (count passes, Line Space samples), the scene uploaded once for them."""
+    from lsbench import backends
+    from lsbench.backends.structures.base import BuildParams, parse_resolution
+    from lsbench.model.stats import line_space_samples, voxel_counts
+
+    t_start = time.perf_counter()
+    info = STRUCTURES[structure]
+    constants = constants or load_constants(device)
+    limit = LS_MAX_VOXELS if info.line_space else GRID_MAX_VOXELS
+    if resolution == "auto":
+        lo, hi = scene.bounds
+        resolutions = (octree_resolutions(limit) if info.cubic_power_of_two
+                       else grid_resolutions(lo, hi, scene.triangle_count, limit))
+    else:
+        resolutions = [parse_resolution(resolution)]
+    ns = (AUTO_NS if ls_n == "auto" else (int(ls_n) or 1,)) if info.line_space else (0,)
+    ks = (AUTO_KS if ls_min_candidates == "auto" else (int(ls_min_candidates),)) if info.line_space else (0,)
+    bufs = {"vertices": device.upload("model_vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
+            "faces": device.upload("model_faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
+    options: list[Option] = []
+    counts_of: dict = {}
+    try:
+        for res in resolutions:
+            geometry = backends.geometry_for(structure, scene, BuildParams(resolution=res))
+            counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+            counts_of[res] = counts
+            if not info.line_space:
+                options.append(_option(device, structure, counts, sample, res, 0, 0, None, budget_bytes, constants))
+                continue
+            # Line Space samples only for the N whose offsets alone (at the largest K) may fit.
+            wanted = [n for n in ns if budget_bytes is None or
+                      _offsets_bytes(counts, n, max(ks)) <= budget_bytes]
+            samples = line_space_samples(device, bufs, scene.triangle_count, geometry, counts, wanted) if wanted else {}
+            densest = int(counts.counts.max(initial=0))
+            for n in ns:
+                # Every K at or over the densest cell's count builds no Line Space at all: one of them is tried.
+                tried = [k for k in ks if k < densest] + [k for k in ks if k >= densest][:1]
+                for k in tried:
+                    options.append(_option(device, structure, counts, sample, res, n, k, samples.get(n),
+                                           budget_bytes, constants))
+    finally:
+        for b in bufs.values():
+            device.release(b)
+    fitting = [o for o in options if o.fits]
+    chosen = min(fitting, key=lambda o: o.seconds_per_ray) if fitting else None
+    requested = {"resolution": resolution, "ls_n": ls_n, "ls_min_candidates": ls_min_candidates}
+    return Choice(structure, chosen, options, budget_bytes, time.perf_counter() - t_start,
+                  constants.source, requested, counts_of[chosen.resolution] if chosen else None)
+
+
+def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):
+    """The BuildParams of `case` and, for a case with "auto" parameters, the Choice that picked
+    them (execute.py calls this once, before the build); (None, choice) when no option fits the
+    budget (choice.no_fit_reason(budget_mib) says why)."""
+    if not case.auto:
+        return case.build_params(), None
+    choice = choose(device, case.structure, scene, ray_sample(rays, hit_t), case.resolution, case.ls_n,
+                    case.ls_min_candidates, budget_bytes)
+    return (choice.params() if choice.chosen else None), choice
+
+
+def _offsets_bytes(counts: VoxelCounts, n: int, k: int) -> int:
+    return 4 * counts.above(k)[0] * shafts_per_cell(n)
+
+
+def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, constants) -> Option:
+    from lsbench.backends.device import DeviceLimitError
+
+    line_space = STRUCTURES[structure].line_space
+    no_cells = line_space and counts.above(k)[0] == 0  # K over every cell: no Line Space is built
+    if ls is not None and ls.limit and not no_cells:  # the device cannot build this N here
+        return Option(res, n, k, BytesPrediction({}, False), Work(0.0, 0.0, 0.0), math.inf, False, ls.limit)
+    work = predict_work(structure, counts, sample, k, None if no_cells else ls)
+    if line_space and ls is None and not no_cells:  # pruned: the offsets alone are over the budget
+        b = BytesPrediction({"ls_shaft_offsets": _offsets_bytes(counts, n, k)}, False)
+        return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), False)
+    try:
+        b = predict_bytes(device, structure, counts, n, k, sample=None if no_cells else ls,
+                          candidates=0 if no_cells else None)
+        over_device = False
+    except DeviceLimitError:  # more buffers than the driver allows: never fits
+        b, over_device = BytesPrediction({}, False), True
+    fits = not over_device and (budget_bytes is None or b.total <= budget_bytes)
+    return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), fits)
+
+
+def bytes_at_least(device, structure: str, scene, params) -> tuple[int, bool]:
+    """Before a build of `params`: the bytes it will allocate at least, from one count pass on the
+    device, and whether that is exact (grid, svo, esvo: yes; a Line Space: all but its shaft
+    candidates, which are not known before its count pass). execute.py fails a case over its
+    budget with this instead of building it."""
+    from lsbench import backends
+    from lsbench.backends.structures import svo
+    from lsbench.model.stats import voxel_counts
+
+    info = STRUCTURES[structure]
+    if info.cubic_power_of_two:
+        svo.octree_depth(params.resolution)  # the recipe's own ValueError for a resolution it cannot build
+    geometry = backends.geometry_for(structure, scene, params)
+    bufs = {"vertices": device.upload("model_vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
+            "faces": device.upload("model_faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
+    try:
+        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+    finally:
+        for b in bufs.values():
+            device.release(b)
+    n = (params.ls_n or 1) if info.line_space else 0
+    return predict_bytes(device, structure, counts, n, params.ls_min_candidates, candidates=0).total, \
+        not info.line_space

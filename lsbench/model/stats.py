@@ -1,0 +1,193 @@
+"""The scene statistics the model predicts from, measured on the device with the structures' own
+kernels (never a host voxelizer): the triangles per voxel of the conservative voxelization's count
+pass (grid.h, Delgado Krämer 2019, 3.4) at a candidate resolution, the non-empty cells per octree
+level derived from them (the octree build's flag pyramid, svo.py: a cell is needed when a child
+is), and, for the Line Space, the candidates per shaft of a sample of cells (the real Line Space
+build, linespace.build_linespaces, run on those cells only).
+
+    counts = voxel_counts(device, scene_buffers, n_tris, geometry)     # VoxelCounts
+    counts.references, counts.non_empty, counts.level_cells()          # per octree level
+    samples = line_space_samples(device, scene_buffers, n_tris, geometry, counts, (1, 2))
+    samples[2].candidates_per_reference(k)   # shaft candidates per reference in cells with > k
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lsbench.backends.device import Device, DeviceLimitError
+from lsbench.backends.structures import grid, linespace
+from lsbench.backends.structures.base import GridGeometry
+
+# Cells of the Line Space sample: spread evenly over the non-empty cells sorted by their count, so
+# the dense cells (which a threshold K keeps) are in it as well as the sparse ones; fewer (at least
+# LS_SAMPLE_MIN) where the sample's triangle/shaft tests would pass LS_SAMPLE_PAIRS (coarse grids of
+# dense scenes: 32 cells of 5000 triangles at N = 4 are 600 M tests, half a minute on PoCL here).
+LS_SAMPLE_CELLS = 32
+LS_SAMPLE_MIN = 4
+LS_SAMPLE_PAIRS = 2**24
+
+
+@dataclass
+class VoxelCounts:
+    """Triangles per voxel of one grid geometry (the count pass), as a (z, y, x) array: voxel
+    (x, y, z) is x + Rx * (y + Ry * z) as on the device (grid.h)."""
+    geometry: GridGeometry
+    counts: np.ndarray  # uint32, shape (Rz, Ry, Rx)
+    walks: dict = field(default_factory=dict, repr=False)  # model/cost.py's ray walks, per ray sample
+
+    @property
+    def voxels(self) -> int:
+        return int(self.counts.size)
+
+    @property
+    def references(self) -> int:
+        return int(self.counts.sum(dtype=np.int64))
+
+    @property
+    def non_empty(self) -> int:
+        return int(np.count_nonzero(self.counts))
+
+    def above(self, k: int) -> tuple[int, int]:
+        """(cells, references) of the voxels with more than k candidates (those that get a Line
+        Space at ls_min_candidates = k)."""
+        keep = self.counts > k
+        return int(np.count_nonzero(keep)), int(self.counts[keep].sum(dtype=np.int64))
+
+    @functools.cached_property
+    def occupancy(self) -> list[np.ndarray]:
+        return self.occupancy_levels()
+
+    def occupancy_levels(self) -> list[np.ndarray]:
+        """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
+        boolean (z, y, x) arrays, level l of 2^l cells per axis; a cell is non-empty when one of
+        its 8 children is (svo.py's flag pyramid)."""
+        occ = self.counts > 0
+        levels = [occ]
+        while occ.shape[0] > 1:
+            r = occ.shape[0] // 2
+            occ = occ.reshape(r, 2, r, 2, r, 2).any(axis=(1, 3, 5))
+            levels.append(occ)
+        return levels[::-1]
+
+    def level_cells(self) -> list[int]:
+        """Non-empty cells per octree level 0..depth (the nodes of each level, leaves last)."""
+        return [int(np.count_nonzero(level)) for level in self.occupancy]
+
+
+def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
+    """The voxelization's count pass at `geometry` on the device (the same kernel every grid and
+    octree build runs first), read back."""
+    grid.prepare(device)
+    buf = device.alloc("model_voxel_counts", 4 * geometry.voxel_count)
+    try:
+        device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
+                        geometry.uniforms(), geometry.resolution)
+        device.finish()
+        counts = device.read(buf, np.uint32, geometry.voxel_count)
+    finally:
+        device.release(buf)
+    rx, ry, rz = geometry.resolution
+    return VoxelCounts(geometry, counts.reshape(rz, ry, rx).copy())
+
+
+@dataclass
+class LineSpaceSample:
+    """Shaft candidates of a sample of cells at one geometry and N, from the real build."""
+    n: int
+    cell_counts: np.ndarray  # int64: each sampled cell's candidates (its voxel list length)
+    shaft_candidates: np.ndarray  # int64 (cells, 15 N^4): each sampled cell's candidates per shaft
+    limit: str = ""  # the device limit the sample's build met (that N cannot be built here), else ""
+
+    @property
+    def cell_candidates(self) -> np.ndarray:
+        """The candidates of all of each sampled cell's shafts together."""
+        return self.shaft_candidates.sum(axis=1)
+
+    def candidates_per_reference(self, k: int) -> float:
+        """Shaft candidates per voxel reference in the sampled cells with more than k candidates
+        (the ratio estimator of the cells that get a Line Space at K = k); 0 when none is sampled."""
+        keep = self.cell_counts > k
+        refs = int(self.cell_counts[keep].sum())
+        return float(self.cell_candidates[keep].sum()) / refs if refs else 0.0
+
+
+def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int = 0) -> np.ndarray:
+    """Flat voxel ids of the sample: `size` non-empty voxels evenly spaced in count order, fewer
+    when their triangles x `shafts` pass LS_SAMPLE_PAIRS."""
+    flat = counts.counts.ravel()
+    non_empty = np.flatnonzero(flat)
+    order = non_empty[np.argsort(flat[non_empty], kind="stable")]
+
+    def pick(k: int) -> np.ndarray:
+        return order if len(order) <= k else order[np.linspace(0, len(order) - 1, k).round().astype(np.int64)]
+    cells = pick(size)
+    pairs = int(flat[cells].sum(dtype=np.int64)) * shafts
+    if pairs > LS_SAMPLE_PAIRS:
+        cells = pick(max(LS_SAMPLE_MIN, int(len(cells) * LS_SAMPLE_PAIRS / pairs)))
+    return cells
+
+
+def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                       counts: VoxelCounts, ns, size: int = LS_SAMPLE_CELLS) -> dict[int, LineSpaceSample]:
+    """The Line Spaces of a sample of non-empty voxels for each N in `ns`, built on the device by
+    the build every Line Space structure runs (linespace.build_linespaces on the grid's voxel lists,
+    built once for all N), and each sampled cell's shaft candidates read from its offsets."""
+    linespace.prepare(device)
+    if counts.non_empty == 0:
+        return {n: LineSpaceSample(n, np.zeros(0, np.int64), np.zeros((0, linespace.shafts_per_cell(n)), np.int64))
+                for n in ns}
+    try:
+        lists, _ = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    except DeviceLimitError as exc:
+        return {n: _limited(n, exc) for n in ns}
+    try:
+        offsets = device.read(lists["voxel_offsets"], np.uint32, geometry.voxel_count + 1).astype(np.int64)
+        out = {}
+        for n in ns:
+            try:
+                out[n] = _sample(device, scene_buffers, geometry, lists["voxel_tris"], offsets,
+                                 sample_cells(counts, size, linespace.shafts_per_cell(n)), n)
+            except DeviceLimitError as exc:  # e.g. llvmpipe's loop budget in the densest cell (sampled)
+                out[n] = _limited(n, exc)
+        return out
+    finally:
+        for b in lists.values():
+            device.release(b)
+
+
+def _limited(n: int, exc: Exception) -> LineSpaceSample:
+    return LineSpaceSample(n, np.zeros(0, np.int64), np.zeros((0, linespace.shafts_per_cell(n)), np.int64),
+                           f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
+
+
+def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_tris, offsets: np.ndarray,
+            cells: np.ndarray, n: int) -> LineSpaceSample:
+    """The Line Spaces of `cells` (flat voxel ids) at N = n, and each one's shaft candidates."""
+    rx, ry, _ = geometry.resolution
+    x, y, z = cells % rx, (cells // rx) % ry, cells // (rx * ry)
+    lo = np.stack([x, y, z], axis=1).astype(np.float32)
+    boxes = np.zeros((len(cells), 2, 4), np.float32)  # (lo.xyz, 0), (hi.xyz, 0) in grid space
+    boxes[:, 0, :3], boxes[:, 1, :3] = lo, lo + 1
+    ranges = np.stack([offsets[cells], offsets[cells + 1]], axis=1).astype(np.uint32)
+    made = [device.upload("model_ls_boxes", boxes.ravel()), device.upload("model_ls_ranges", ranges.ravel())]
+    try:
+        cell_counts = ranges[:, 1].astype(np.int64) - ranges[:, 0]
+        sample = linespace.Cells(len(cells), made[0], made[1], voxel_tris, int(cell_counts.sum()))
+        ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
+        made += list(ls.buffers.values())
+        names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
+        shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
+        per_shaft = np.diff(shaft_offsets[: len(cells) * ls.shafts_per_cell + 1])
+        return LineSpaceSample(n, cell_counts, per_shaft.reshape(len(cells), ls.shafts_per_cell))
+    finally:
+        for b in made:
+            device.release(b)
+
+
+def line_space_sample(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
+                      counts: VoxelCounts, n: int, size: int = LS_SAMPLE_CELLS) -> LineSpaceSample:
+    """line_space_samples for one N."""
+    return line_space_samples(device, scene_buffers, n_tris, geometry, counts, (n,), size)[n]
