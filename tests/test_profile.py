@@ -279,3 +279,15 @@ def test_spread_counts_failures():
     assert s["ok"] == 2 and s["failed"] == ["boom"]
     assert s["median"] == 2.0 and s["spread"] == pytest.approx(1.0)
     assert s["within_run_cv_mean"] == pytest.approx(0.2)
+
+
+def test_hotloop_cpu_seconds():
+    """The A/B tool of docs/profiles.md: CPU seconds per launch for us and Embree, one JSON line."""
+    res = subprocess.run([sys.executable, "-m", "lsbench.profile.hotloop", "cornell", "grid", "opencl", "8",
+                          "--size", "16x16", "--cpu-repeats", "2"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["case"] == "grid opencl r8 primary"
+    assert out["cpu_seconds"] > 0 and out["embree_cpu_seconds"] > 0
+    assert out["mrays_per_cpu_second"] == pytest.approx(256 / out["cpu_seconds"] / 1e6)
