@@ -30,7 +30,8 @@ it: candidate tests ÷ 32 (the thesis' Fig. 4 scale: 1.0 = 32 tests; attribute l
 
 Thesis Fig. 4 side by side: `write_heatmap_row` renders one counter of several cases (the
 structures of one scene) from their EXRs as one PNG at ONE shared scale, with a colour bar
-(`shared_scale`: the largest 99th percentile among them), so equal colours mean equal work.
+(`shared_scale`: the largest 99th percentile among them, at least 1: the SIMD efficiencies get
+0 .. 1), so equal colours mean equal work; lsbench/report/images.py draws a run's rows with it.
 
 <case> is the case key with every character outside [A-Za-z0-9.-] replaced by '_'. The returned
 dict maps names (exr, iterations, candidate_tests, ..., summary) to paths RELATIVE TO
