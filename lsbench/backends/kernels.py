@@ -84,7 +84,8 @@ SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
 # Traversal kernels also read tri_verts: each triangle's three vertices as float4 (w unused) at
 # 3 * tri .. 3 * tri + 2, gathered through the faces once at upload (backends.triangle_records). A
 # candidate test then loads one 48-byte record instead of 3 face indices and 3 scattered vertices
-# (docs/profiles.md: +5-7 % on PoCL, +35-42 % on llvmpipe, per CPU-second); builds keep vertices/faces.
+# (docs/profiles.md, primary rays per CPU-second: +5-7 % on PoCL, +35-42 % on llvmpipe; incoherent rays:
+# no difference resolved); builds keep vertices/faces.
 TRACE_SCENE_BUFFERS = SCENE_BUFFERS + (Buf("tri_verts", "float4", "r"),)
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
 # What every traversal kernel reads besides its structure: trace.h (rays, hits, the candidate loop
