@@ -13,6 +13,7 @@ import pytest
 from lsbench import backends
 from lsbench.backends import BuildParams
 from lsbench.profile import heatmaps as profile
+from lsbench.profile import simd
 from lsbench.profile import stability
 from lsbench.inputs.rays import RaySet
 from lsbench.inputs.scene import Scene
@@ -49,12 +50,45 @@ def test_counters_exact_on_hand_built_grid(device):
     assert list(work[:, 0]) == expect_iter + [0], "iterations = voxels walked"
     assert list(work[:, 1]) == [1] * len(starts) + [0], "candidate tests = A once per ray"
     assert list(work[:, 2]) == [0] * (len(starts) + 1), "the grid makes no Line Space lookups"
+    # one group (6 rays < 32): steps 8 8 5 2 1 0 = 24 useful of 6 x 8 issued lane-steps
+    assert simd.simd_efficiency(work[:, 0], None, simd.WARP) == pytest.approx(24 / 48)
+    assert simd.simd_efficiency(work[:, 1], None, simd.WARP) == pytest.approx(5 / 6)
     clock = profile.clock_info(device)
     if clock["available"]:
         assert (work[:len(starts), 3] > 0).all()
     else:
         assert (work[:, 3] == 0).all()
         assert clock["note"].startswith("no device clock on ")
+
+
+def test_simd_efficiency_by_hand():
+    """Groups in dispatch order: order[i] = the ray launched as item i; efficiency weighted by
+    each group's max (lane-slots issued), groups that count nothing weigh 0."""
+    steps = np.array([4, 4, 4, 4, 1, 0, 0, 3, 0, 0], np.uint32)  # ray order
+    order = np.array([0, 1, 2, 3, 4, 7, 5, 6, 8, 9])  # launch items: rays 0..4, 7, 5, 6, 8, 9
+    eff, maxes = simd.group_efficiency(steps, order, 4)
+    # groups [4 4 4 4], [1 3 0 0], [0 0]: 16/16, 4/12, no work
+    np.testing.assert_allclose(eff[:2], [1.0, 4 / 12])
+    assert np.isnan(eff[2]) and list(maxes) == [4, 3, 0]
+    assert simd.simd_efficiency(steps, order, 4) == pytest.approx(20 / (16 + 12))
+    assert simd.simd_efficiency(steps, None, 4) == pytest.approx(20 / (16 + 4 * 3))  # [4 4 4 4] [1 0 0 3] [0 0]
+    assert simd.simd_efficiency(steps, order, 1) == 1.0
+    assert simd.simd_efficiency(np.zeros(5, np.uint32), None, 4) is None
+    per_ray = simd.per_ray_group_efficiency(steps, order, 4)
+    np.testing.assert_allclose(per_ray[[0, 3, 4, 5, 6, 7]], [1, 1, 4 / 12, 4 / 12, 4 / 12, 4 / 12])
+    assert np.isnan(per_ray[[8, 9]]).all()
+
+
+def test_device_simd_width(device):
+    info = device.info()
+    width, source = simd.device_simd_width(info)
+    if "llvmpipe" in info["device"]:
+        bits = int(info["device"].split(" bits")[0].rsplit(" ", 1)[1])
+        assert width == bits // 32 and "llvmpipe" in source
+    elif "Portable Computing Language" in info["driver"] and "CPU" in info["device_type"]:
+        assert width == 1 and "one work-item at a time" in source
+    assert simd.device_simd_width({"device": "x", "vendor": "y"}) == (None, "group width of x not known")
+    assert simd.device_simd_width({"device": "NVIDIA H200", "vendor": "NVIDIA Corporation"})[0] == 32
 
 
 def test_clock_info_names_the_device(device):
@@ -115,13 +149,26 @@ def test_heatmaps_written_and_match_counters(device, tmp_path):
     for name in ("exr", "iterations", "candidate_tests", "candidate_tests_max32", "combined", "summary"):
         assert name in files
     for name, rel in files.items():
-        if rel.endswith(".png"):
+        if rel.endswith(".png") and name != "colorbars":  # every heatmap has the image's size
             assert profile.png_size(tmp_path / rel) == (32, 24), name
     exr = profile.read_exr(tmp_path / files["exr"])
     for i, name in enumerate(profile.CHANNELS[:3]):  # deterministic counters equal a second trace
         np.testing.assert_array_equal(exr[name], ref[:, i].reshape(24, 32).astype(np.float32))
+    # the standard luminance channel ordinary viewers show: tests / 32
+    np.testing.assert_allclose(exr["Y"], ref[:, 1].reshape(24, 32) / 32.0, rtol=1e-6)
+    # SIMD efficiency per 32-ray group of the launch (8x8 tiles: a group is 8x4 pixels)
+    order = backends.launch_order(rays)
+    for counter, short in simd.COUNTERS.items():
+        name = f"simd_{short}_w32"
+        assert name in files and profile.png_size(tmp_path / files[name]) == (32, 24)
+        expect = simd.per_ray_group_efficiency(ref[:, profile.CHANNELS.index(counter)], order, 32)
+        np.testing.assert_allclose(exr[name], expect.reshape(24, 32).astype(np.float32), rtol=1e-6)
+        block = exr[name][0:4, 0:8]  # launch items 0..31: rows 0-3 of the first tile
+        assert np.all(block == block[0, 0]) or np.isnan(block).all()
+    assert profile.png_size(tmp_path / files["colorbars"])[0] == 420  # the legend of every PNG's scale
     summary = json.loads((tmp_path / files["summary"]).read_text())
     assert summary["width"] == 32 and summary["height"] == 24
+    assert summary["simd"]["simd_efficiency_steps_w32"] == pytest.approx(simd.simd_efficiency(ref[:, 0], order, 32))
     assert summary["counters"]["iterations"]["mean"] == pytest.approx(float(ref[:, 0].mean()))
     assert summary["counters"]["candidate_tests"]["max"] == int(ref[:, 1].max())
     assert summary["normalization"]["candidate_tests_max32"]["max"] == 32
@@ -131,6 +178,22 @@ def test_heatmaps_written_and_match_counters(device, tmp_path):
     else:
         assert "clock" not in files and summary["not_drawn"]["clock"].startswith("no device clock on ")
         assert (exr["clock"] == 0).all()
+
+
+def test_heatmap_row_one_scale(tmp_path):
+    """Thesis Fig. 4 side by side: two cases' candidate tests in one PNG at the larger p99."""
+    a = np.arange(48, dtype=np.float32).reshape(6, 8)
+    b = 3 * a
+    paths = []
+    for name, img in (("a", a), ("b", b)):
+        path = tmp_path / f"{name}.exr"
+        profile.write_exr(path, {c: img for c in profile.CHANNELS})
+        paths.append((name, path))
+    drawn = profile.write_heatmap_row(paths, "candidate_tests", tmp_path / "row.png")
+    assert drawn["max"] == pytest.approx(np.percentile(b, 99)) and drawn["labels"] == ["a", "b"]
+    w, h = profile.png_size(tmp_path / "row.png")
+    assert w > 2 * h  # a row, not a column
+    assert profile.write_heatmap_row(paths, "iterations", tmp_path / "row2.png", vmax=10)["max"] == 10
 
 
 def busy_scene(count: int = 3000, seed: int = 3) -> Scene:
@@ -184,7 +247,11 @@ def test_cli_trace_writes_heatmaps(tmp_path):
     rec = json.loads(res.stdout)
     assert rec["status"] == "ok"
     hm = rec["heatmaps"]
-    assert {"exr", "iterations", "candidate_tests", "combined", "summary"} <= set(hm)
+    assert {"exr", "iterations", "candidate_tests", "combined", "summary", "simd_steps_w32", "colorbars"} <= set(hm)
+    assert 0 < rec["simd_efficiency_steps_w32"] <= 1 and 0 < rec["simd_efficiency_tests_w32"] <= 1
+    if "llvmpipe" in rec["device"]:  # 8 lanes: less idling than in a 32-wide group
+        assert rec["simd_width_device"] == 8 and "simd_steps_w8" in hm
+        assert rec["simd_efficiency_steps_device"] >= rec["simd_efficiency_steps_w32"]
     for rel in hm.values():
         assert (tmp_path / "run" / rel).is_file()
     assert len(list(out.glob("*.png"))) >= 4 and len(list(out.glob("*.exr"))) == 1
@@ -212,3 +279,15 @@ def test_spread_counts_failures():
     assert s["ok"] == 2 and s["failed"] == ["boom"]
     assert s["median"] == 2.0 and s["spread"] == pytest.approx(1.0)
     assert s["within_run_cv_mean"] == pytest.approx(0.2)
+
+
+def test_hotloop_cpu_seconds():
+    """The A/B tool of docs/profiles.md: CPU seconds per launch for us and Embree, one JSON line."""
+    res = subprocess.run([sys.executable, "-m", "lsbench.profile.hotloop", "cornell", "grid", "opencl", "8",
+                          "--size", "16x16", "--cpu-repeats", "2"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["case"] == "grid opencl r8 primary"
+    assert out["cpu_seconds"] > 0 and out["embree_cpu_seconds"] > 0
+    assert out["mrays_per_cpu_second"] == pytest.approx(256 / out["cpu_seconds"] / 1e6)

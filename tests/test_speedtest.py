@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lsbench import backends
+from lsbench.profile import simd
 from lsbench.cli import build_parser
 from lsbench.commands.speedtest import speedtest_cases
 from lsbench.inputs.scenario import load_scenario
@@ -59,6 +60,10 @@ def test_speedtest_table_json(tmp_path):
         # --work: steps and candidate tests per ray from the profiling kernel's counters
         assert row["iterations_per_ray"] > 0 and row["candidate_tests_per_ray"] > 0
         assert cells[12] == f"{row['iterations_per_ray']:.1f}"
+        # and their SIMD efficiency per 32-ray group and per group of the device's own lanes
+        assert 0 < row["simd_efficiency_steps_w32"] <= 1 and cells[14] == f"{row['simd_efficiency_steps_w32']:.2f}"
+        width = simd.device_simd_width(backends.get_device(pair[1]).info())[0]  # llvmpipe 8 here, PoCL 1
+        assert cells[16] == str(row["simd_width_device"]) == str(width)
         if pair[1] == "opencl":  # device time per build kernel from OpenCL event profiling
             kernels = row["build_kernel_seconds"]
             assert {"voxelize_count", "voxelize_fill"} <= set(kernels)

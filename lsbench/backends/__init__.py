@@ -59,6 +59,14 @@ def geometry_for(structure: str, scene, params: BuildParams) -> GridGeometry:
     return GridGeometry.over_bounds(lo, hi, params.resolution, cubic=cubic)
 
 
+def triangle_records(scene) -> np.ndarray:
+    """The traversals' copy of the triangles (kernels.TRACE_SCENE_BUFFERS): per triangle its three
+    vertices as float4 (w = 0), in face order, flattened."""
+    records = np.zeros((scene.triangle_count, 3, 4), np.float32)
+    records[:, :, :3] = np.asarray(scene.vertices, np.float32)[np.asarray(scene.faces, np.int64)]
+    return records.ravel()
+
+
 def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     module = structure_info(structure).recipe
     geometry = geometry_for(structure, scene, params)
@@ -67,6 +75,7 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     scene_buffers = {
         "vertices": device.upload("vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
         "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel()),
+        "tri_verts": device.upload("tri_verts", triangle_records(scene)),
     }
     device.finish()
     device.start_kernel_log()

@@ -81,6 +81,12 @@ def numbered(source: str) -> str:
 
 # --- Specs shared by every structure -------------------------------------------------------
 SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
+# Traversal kernels also read tri_verts: each triangle's three vertices as float4 (w unused) at
+# 3 * tri .. 3 * tri + 2, gathered through the faces once at upload (backends.triangle_records). A
+# candidate test then loads one 48-byte record instead of 3 face indices and 3 scattered vertices
+# (docs/profiles.md, primary rays per CPU-second: +5-7 % on PoCL, +35-42 % on llvmpipe; incoherent rays:
+# no difference resolved); builds keep vertices/faces.
+TRACE_SCENE_BUFFERS = SCENE_BUFFERS + (Buf("tri_verts", "float4", "r"),)
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
 # What every traversal kernel reads besides its structure: trace.h (rays, hits, the candidate loop
 # over voxel_tris) after the scene and, for Line Space kernels, linespace.h.
@@ -108,5 +114,5 @@ def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers
     cells may hold a Line Space)."""
     common = LS_TRACE_HEADERS if line_space else TRACE_HEADERS
     defines = (("LEAF_LINE_SPACE", "1"),) if line_space else ()
-    return KernelSpec(name, common + headers, body, SCENE_BUFFERS + structure_buffers + RAY_BUFFERS,
+    return KernelSpec(name, common + headers, body, TRACE_SCENE_BUFFERS + structure_buffers + RAY_BUFFERS,
                       uniforms, defines)

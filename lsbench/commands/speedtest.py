@@ -85,8 +85,9 @@ def setup_arguments(sub) -> None:
     p.add_argument("--warmup", type=RUN_RULES["warmup"].flag, help="untimed launches before them")
     p.add_argument("--timeout", type=RUN_RULES["timeout_seconds"].flag, help="seconds per case worker")
     p.add_argument("--work", action="store_true",
-                   help="also where the time goes: steps and candidate tests per ray, device time "
-                        "per build kernel (OpenCL event profiling)")
+                   help="also where the time goes: steps and candidate tests per ray, their SIMD "
+                        "efficiency (32-ray groups and the device's own width), device time per build "
+                        "kernel (OpenCL event profiling)")
     p.add_argument("--out", type=table_file, metavar="FILE.json|FILE.csv",
                    help="also write the table's rows (JSON with the full records, or CSV)")
     p.set_defaults(func=run)
@@ -167,6 +168,8 @@ ROW_FIELDS = ("scene", "rays", "width", "height", "structure", "backend", "resol
               "ls_min_candidates", "status", "reason", "rays_per_second", "embree_rays_per_second",
               "x_embree", "memory_bytes", "build_seconds", "agreement", "unexplained",
               "iterations_per_ray", "candidate_tests_per_ray", "linespace_lookups_per_ray",
+              "simd_efficiency_steps_w32", "simd_efficiency_tests_w32", "simd_width_device",
+              "simd_efficiency_steps_device", "simd_efficiency_tests_device",
               "build_kernel_seconds", "wall_seconds", "key")
 
 
@@ -190,8 +193,8 @@ def speed_table(rows: list[dict], work: bool = False) -> list[str]:
 
     head = ["scene", "structure", "backend", "res", "N", "Mrays/s", "Embree Mrays/s", "× Embree", "MiB",
             "build s", "agreement", "unexpl."]
-    if work:
-        head += ["steps/ray", "tests/ray"]
+    if work:  # SIMD efficiency: lsbench/profile/simd.py (32-ray groups, and the device's own width)
+        head += ["steps/ray", "tests/ray", "SIMD steps w32", "SIMD tests w32", "lanes", "SIMD steps dev", "SIMD tests dev"]
     head.append("status")
     lines = []
     for r in rows:
@@ -203,8 +206,11 @@ def speed_table(rows: list[dict], work: bool = False) -> list[str]:
                 _num(r["build_seconds"], ".2f") if ok else "-",
                 _num(r["agreement"], ".6f") if ok else "-", _num(r["unexplained"], "d") if ok else "-"]
         if work:
-            line += [_num(r["iterations_per_ray"], ".1f") if ok else "-",
-                     _num(r["candidate_tests_per_ray"], ".1f") if ok else "-"]
+            line += [_num(r[f], fmt) if ok else "-" for f, fmt in (
+                ("iterations_per_ray", ".1f"), ("candidate_tests_per_ray", ".1f"),
+                ("simd_efficiency_steps_w32", ".2f"), ("simd_efficiency_tests_w32", ".2f"),
+                ("simd_width_device", "d"), ("simd_efficiency_steps_device", ".2f"),
+                ("simd_efficiency_tests_device", ".2f"))]
         line.append("ok" if ok else f"FAILED: {r['reason']}")
         lines.append(line)
     numbers = set(range(3, len(head) - 1))

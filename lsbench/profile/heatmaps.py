@@ -16,8 +16,22 @@ lsbench.inputs.rays.primary_rays) and writes into OUT_DIR:
     <case>_clock_over_scene_p99.png  clock in red over the grey-shaded hits (thesis Fig. 20b)
     <case>_combined.png              iterations in yellow (0 .. p99), candidate tests in blue
                                      (0 .. p99), like thesis Fig. 20a (both high = white)
+    <case>_simd_steps_w32.png        SIMD efficiency per group of 32 rays in dispatch order (mean ÷
+    <case>_simd_tests_w32.png        max of the group's steps / candidate tests, lsbench/profile/simd.py),
+                                     0 .. 1 (1 = no lane idles), every ray painted with its group's value;
+                                     black: the group did no such work
+    <case>_simd_{steps,tests}_wW.png the same for the device's own group width W where known and not 1 or 32
+    <case>_colorbars.png             the colour bar and scale of every PNG above (one legend per case)
     <case>_work.json                 per counter mean/max/percentiles, the normalization of every
                                      PNG, the clock's unit (or why there is none)
+
+The EXR holds a standard luminance channel Y beside the named ones, so ordinary viewers show
+it: candidate tests ÷ 32 (the thesis' Fig. 4 scale: 1.0 = 32 tests; attribute lsbench_Y).
+
+Thesis Fig. 4 side by side: `write_heatmap_row` renders one counter of several cases (the
+structures of one scene) from their EXRs as one PNG at ONE shared scale, with a colour bar
+(`shared_scale`: the largest 99th percentile among them, at least 1: the SIMD efficiencies get
+0 .. 1), so equal colours mean equal work; lsbench/report/images.py draws a run's rows with it.
 
 <case> is the case key with every character outside [A-Za-z0-9.-] replaced by '_'. The returned
 dict maps names (exr, iterations, candidate_tests, ..., summary) to paths RELATIVE TO
@@ -47,11 +61,14 @@ from pathlib import Path
 
 import numpy as np
 
-CHANNELS = ("iterations", "candidate_tests", "linespace_lookups", "clock")
+from lsbench.backends.structures.base import WORK_CHANNELS
+
+CHANNELS = WORK_CHANNELS  # the counters of Hits.work, one image each
 CANDIDATE_TESTS_MAX = 32  # thesis Fig. 4: "blue = 32 or more tests"
 PERCENTILE = 99.0
 CLOCK_RUNS = 3  # profiling traces per case where there is a clock (per-ray minimum is kept)
 COLORMAP = "inferno"
+Y_RULE = f"candidate_tests / {CANDIDATE_TESTS_MAX} (thesis Fig. 4 scale: 1.0 = {CANDIDATE_TESTS_MAX} tests)"
 
 
 # ---- clock ------------------------------------------------------------------------------------
@@ -147,6 +164,59 @@ def colorize(img: np.ndarray, vmax: float, cmap: str = COLORMAP) -> np.ndarray:
     return (rgb * 255.0 + 0.5).astype(np.uint8)
 
 
+def colorbar_rgb(entries: list[tuple[str, float, str]], width: int = 420) -> np.ndarray:
+    """One legend image: per (label, vmax, colormap) a labelled colour bar from 0 to vmax
+    (matplotlib, Agg), as (H, W, 3) uint8."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import cm, colors, pyplot
+
+    rows = max(len(entries), 1)
+    fig = pyplot.figure(figsize=(width / 100.0, 0.62 * rows + 0.1), dpi=100)
+    for k, (label, vmax, cmap) in enumerate(entries):
+        ax = fig.add_axes([0.04, 1.0 - (k + 1) * (1.0 / rows) + 0.55 / rows, 0.92, 0.2 / rows])
+        bar = fig.colorbar(cm.ScalarMappable(colors.Normalize(0.0, vmax), cmap), cax=ax, orientation="horizontal")
+        bar.ax.tick_params(labelsize=7)
+        ax.set_title(label, fontsize=8, loc="left", pad=2)
+    fig.canvas.draw()
+    rgb = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    pyplot.close(fig)
+    return rgb
+
+
+def shared_scale(images: list[np.ndarray]) -> float:
+    """One scale for one counter across cases: the largest of their 99th percentiles (>= 1)."""
+    return max([_p99(np.nan_to_num(img, nan=0.0).ravel()) for img in images] or [1.0])
+
+
+def write_heatmap_row(exrs: list[tuple[str, object]], counter: str, out_path, vmax: float | None = None,
+                      cmap: str = COLORMAP) -> dict:
+    """Thesis Fig. 4 side by side: channel `counter` of each (label, EXR path) (the structures
+    of one scene, from write_heatmaps) in one PNG row at one scale with a colour bar; vmax None
+    = shared_scale of them. Returns what was drawn: {file, counter, max, rule, labels}."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
+
+    images = [read_exr(path)[counter] for _, path in exrs]
+    scale = float(vmax) if vmax is not None else shared_scale(images)
+    fig, axes = pyplot.subplots(1, len(images), figsize=(2.6 * len(images) + 0.8, 2.9), squeeze=False)
+    shown = None
+    for ax, (label, _), img in zip(axes[0], exrs, images):
+        shown = ax.imshow(np.ma.masked_invalid(img), cmap=cmap, vmin=0.0, vmax=scale, interpolation="nearest")
+        ax.set_title(label, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    bar = fig.colorbar(shown, ax=list(axes[0]), fraction=0.025, pad=0.02, extend="max")
+    bar.set_label(f"{counter} (0 .. {scale:g}, one scale)", fontsize=8)
+    fig.savefig(str(out_path), dpi=100, bbox_inches="tight")
+    pyplot.close(fig)
+    return {"file": str(out_path), "counter": counter, "max": scale, "labels": [label for label, _ in exrs],
+            "rule": "largest 99th percentile of the cases (shared_scale)" if vmax is None else "given"}
+
+
 def combined_rgb(iterations: np.ndarray, tests: np.ndarray, it_max: float, tests_max: float) -> np.ndarray:
     """Thesis Fig. 20a: iterations in the yellow channel (red + green), candidate tests in blue."""
     it = normalize(iterations, it_max)
@@ -231,9 +301,20 @@ def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_
     def rel(p: Path) -> str:
         return p.relative_to(base).as_posix()
 
+    from lsbench import backends
+    from lsbench.profile import simd
+
+    order = backends.launch_order(rays)
+    width, _ = simd.device_simd_width(info)
+    widths = [simd.WARP] + ([width] if width and width not in (1, simd.WARP) else [])
+    simd_images = {f"simd_{short}_w{w}": to_image(simd.per_ray_group_efficiency(
+                       work[:, CHANNELS.index(counter)], order, w).astype(np.float32), shape)
+                   for w in widths for counter, short in simd.COUNTERS.items()}
+
     exr = out / f"{slug}.exr"
-    write_exr(exr, images, {"lsbench_case": case_key, "lsbench_clock_unit": clock["unit"] or "none (zero)",
-                            "lsbench_device": info.get("device", "")})
+    write_exr(exr, {**images, **simd_images, "Y": images["candidate_tests"] / np.float32(CANDIDATE_TESTS_MAX)},
+              {"lsbench_case": case_key, "lsbench_clock_unit": clock["unit"] or "none (zero)",
+               "lsbench_device": info.get("device", ""), "lsbench_Y": Y_RULE})
     files["exr"] = rel(exr)
 
     norms: dict[str, dict] = {}
@@ -277,6 +358,20 @@ def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_
         norms["clock_over_scene"] = {"file": rel(path), "rule": "thesis Fig. 20b: red = clock / max (99th "
                                      "percentile clamp) over the hits shaded grey at 25 %", "max": vmax}
 
+    for name, img in simd_images.items():
+        path = out / f"{slug}_{name}.png"
+        write_png(path, colorize(img, 1.0))
+        files[name] = rel(path)
+        norms[name] = {"file": rel(path), "colormap": COLORMAP, "min": 0.0, "max": 1.0,
+                       "rule": f"mean ÷ max per {name.rsplit('_w', 1)[1]}-ray group (dispatch order, "
+                               "lsbench/profile/simd.py); black: the group did none of this work"}
+
+    legend = [(f"{name}" + (f" [{clock['unit']}]" if name == "clock" else "") + f": {n['rule'].split(' (')[0][:48]}",
+               n["max"], n.get("colormap", COLORMAP)) for name, n in norms.items() if "colormap" in n]
+    path = out / f"{slug}_colorbars.png"
+    write_png(path, colorbar_rgb(legend))
+    files["colorbars"] = rel(path)
+
     hit = hits.prim_ids >= 0
     summary = {
         "case": case_key, "structure": built.structure, "device": info.get("device"), "driver": info.get("driver"),
@@ -290,7 +385,8 @@ def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_
         "clock": clock, "counters": stats,
         "counters_hit_rays": {name: counter_stats(work[hit, i]) for i, name in enumerate(CHANNELS)},
         "normalization": norms, "not_drawn": skipped,
-        "exr_channels": list(CHANNELS), "files": dict(files),
+        "simd": {**simd.simd_fields(work, order, info), "widths_drawn": widths},
+        "exr_channels": [*CHANNELS, *simd_images, "Y"], "exr_Y": Y_RULE, "files": dict(files),
     }
     path = out / f"{slug}_work.json"
     path.write_text(json.dumps(summary, indent=2))

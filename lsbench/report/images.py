@@ -21,7 +21,8 @@ from lsbench.report.tables import workload_label
 
 e = html.escape
 BROWSER_IMAGES = {".png", ".jpg", ".jpeg", ".gif", ".svg", ".webp"}
-ROW_COUNTERS = ("iterations", "candidate_tests", "linespace_lookups", "clock")  # EXR channels
+# EXR channels; simd_*_w32: mean ÷ max per 32-ray group (lsbench/profile/simd.py), drawn 0 .. 1
+ROW_COUNTERS = ("iterations", "candidate_tests", "linespace_lookups", "clock", "simd_steps_w32", "simd_tests_w32")
 
 
 class Files:

@@ -85,6 +85,12 @@ class Record:
     iterations_per_ray: float | None = None
     candidate_tests_per_ray: float | None = None
     linespace_lookups_per_ray: float | None = None
+    simd_efficiency_steps_w32: float | None = None
+    simd_efficiency_tests_w32: float | None = None
+    simd_width_device: int | None = None
+    simd_width_source: str | None = None
+    simd_efficiency_steps_device: float | None = None
+    simd_efficiency_tests_device: float | None = None
     work_counters_error: str | None = None
     predicted: dict | None = None  # an "auto" case: the model's prediction of the chosen setting
     heatmaps: dict = field(default_factory=dict)

@@ -90,6 +90,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
     from lsbench.inputs.scenes import load_scene
     from lsbench.oracle.classifier import judge_hits
     from lsbench.model.cost import bytes_at_least, resolve_case
+    from lsbench.profile.simd import simd_fields
 
     if scene is None:
         scene = load_scene(case.scene)
@@ -140,7 +141,9 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
                      prim_ids=hits.prim_ids, distances=hits.distances,
                      embree_prim_ids=ref_prim, embree_distances=ref_t)
         try:  # the counter kernel binds one more buffer: a driver limit there leaves the case ok
-            rec.update(**work_fields(backends.trace(built, rays, work=True).work), work_counters_error="")
+            work = backends.trace(built, rays, work=True).work
+            rec.update(**work_fields(work), **simd_fields(work, backends.launch_order(rays), info),
+                       work_counters_error="")
         except (DeviceLimitError, DeviceError) as exc:
             rec.update(work_counters_error=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
         # Embree traces the same rays once after each timed launch, so the ratio of the two speeds

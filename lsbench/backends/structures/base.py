@@ -120,7 +120,7 @@ class Built:
 class Hits:
     prim_ids: np.ndarray  # int32, -1 = miss
     distances: np.ndarray  # float32, inf for a miss
-    work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace
+    work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace, WORK_CHANNELS
     slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
 
 
@@ -134,6 +134,10 @@ def for_query(spec: KernelSpec, query: str) -> KernelSpec:
     if query not in QUERIES:
         raise ValueError(f"unknown query {query!r}; choose one of {', '.join(QUERIES)}")
     return spec.with_defines(QUERY_ANY=1) if query == "any" else spec
+
+
+# The columns of Hits.work, in the order the COUNT_WORK kernels write them (shaders/common/trace.h).
+WORK_CHANNELS = ("iterations", "candidate_tests", "linespace_lookups", "clock")
 
 
 def with_work_counters(spec: KernelSpec, device: Device | None = None) -> KernelSpec:

@@ -5,7 +5,8 @@
 // Needs geometry.h, scene.h and, for LEAF_LINE_SPACE kernels, linespace.h.
 //
 // Buffers: rays (float4 pairs: origin.xyz + tmin, direction.xyz + tmax), hit_prim (int, -1 =
-// miss), hit_t (float), voxel_tris (uint: the cells' plain candidate lists); work (uint4 per ray)
+// miss), hit_t (float), voxel_tris (uint: the cells' plain candidate lists), tri_verts (float4: each
+// triangle's vertices, load_candidate); work (uint4 per ray)
 // in COUNT_WORK builds. Feature defines (set by the KernelSpec): LEAF_LINE_SPACE (cells may hold
 // a Line Space: svo-ls, esvo-ls, grid-ls), COUNT_WORK (profiling counters), QUERY_ANY (the any-hit
 // query of shadow and ambient-occlusion rays: is anything in [tmin, tmax)? The first hit found
@@ -292,6 +293,16 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
 }
 #endif
 
+// A candidate's vertices from tri_verts (float4 triples in triangle order, bound by every trace
+// kernel: backends/kernels.py TRACE_SCENE_BUFFERS): one contiguous record, no face-index indirection.
+INLINE Triangle load_candidate(CTX_PARAM uint tri) {
+    Triangle t;
+    t.a = V(tri_verts)[3u * tri].xyz;
+    t.b = V(tri_verts)[3u * tri + 1u].xyz;
+    t.c = V(tri_verts)[3u * tri + 2u].xyz;
+    return t;
+}
+
 // Candidates are tested against the original ray (the watertight test of geometry.h, so t is the
 // world distance). Every hit is kept, wherever along the ray it lies: the walk ends only once the
 // closest hit lies before the current cell's exit (trace_done), so a farther hit of a triangle that
@@ -322,7 +333,7 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
 #else
         uint tri = V(voxel_tris)[i];
 #endif
-        Triangle T = load_triangle(CTX_ARG tri);
+        Triangle T = load_candidate(CTX_ARG tri);
         float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
         tr.best = closer(tr.best, t, I32(tri), tr.tmin);
 #ifdef QUERY_ANY
