@@ -505,3 +505,13 @@ def test_heatmap_rows_stand_when_files_are_missing(tmp_path):
     assert "missing: heatmaps/svo_iterations.png" in section and "own scale" in section
     assert "missing: heatmaps/grid.exr" in section  # under 'more', not a broken link
     assert_every_link_resolves(index)
+
+
+def test_case_labels_name_a_bvh_by_its_leaf_size_not_a_resolution():
+    from lsbench.report.records import case_label
+
+    assert case_label({"structure": "grid", "resolution": "64", "backend": "glsl"}) == "grid 64³ glsl"
+    assert case_label({"structure": "svo-ls", "resolution": "32", "ls_n": 2, "backend": "opencl"}) == \
+        "svo-ls 32³ N=2 opencl"
+    assert case_label({"structure": "bvh", "resolution": "64", "leaf_size": 8, "backend": "opencl"}) == \
+        "bvh leaf 8 opencl"

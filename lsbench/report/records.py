@@ -56,8 +56,11 @@ def label_scenes(records) -> None:
 
 
 def case_label(rec, with_scene=False) -> str:
-    """"grid 64³ glsl", "svo-ls 32³ N=2 opencl"; with_scene puts the scene first."""
-    parts = [rec.get("structure", "?"), resolution_label(rec.get("resolution", "?"))]
+    """"grid 64³ glsl", "svo-ls 32³ N=2 opencl", "bvh leaf 8 opencl" (a BVH has no grid
+    resolution: its leaf size instead); with_scene puts the scene first."""
+    leaf = rec.get("leaf_size")
+    parts = [rec.get("structure", "?"),
+             f"leaf {leaf}" if leaf else resolution_label(rec.get("resolution", "?"))]
     if rec.get("ls_n"):
         parts.append(f"N={rec['ls_n']}")
     parts.append(rec.get("backend", "?"))
