@@ -185,8 +185,8 @@ class Device(abc.ABC):
         limit = self.max_buffer_bytes
         if nbytes > limit:
             raise DeviceLimitError(
-                f"buffer '{name}' needs {nbytes / 2**20:.1f} MiB, over the {self.backend} "
-                f"driver's per-buffer limit of {limit / 2**20:.0f} MiB ({self.limit_name})")
+                f"buffer '{name}' needs {nbytes} bytes ({nbytes / 2**20:.1f} MiB), over the {self.backend} "
+                f"driver's per-buffer limit of {limit} bytes ({limit / 2**20:.0f} MiB, {self.limit_name})")
 
     limit_name = "max buffer size"
 

@@ -85,8 +85,10 @@ SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
 # 3 * tri .. 3 * tri + 2, gathered through the faces once at upload (backends.triangle_records). A
 # candidate test then loads one 48-byte record instead of 3 face indices and 3 scattered vertices
 # (docs/profiles.md, primary rays per CPU-second: +5-7 % on PoCL, +35-42 % on llvmpipe; incoherent rays:
-# no difference resolved); builds keep vertices/faces.
-TRACE_SCENE_BUFFERS = SCENE_BUFFERS + (Buf("tri_verts", "float4", "r"),)
+# no difference resolved); builds keep vertices/faces. The traversals bind tri_verts only
+# (TRIANGLE_RECORDS: scene.h leaves out the indexed loads), so the records cost no storage-buffer
+# binding of the 16 GLSL allows (a Line Space split over 4 + 4 buffers, slices and counters).
+TRACE_SCENE_BUFFERS = (Buf("tri_verts", "float4", "r"),)
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
 # What every traversal kernel reads besides its structure: trace.h (rays, hits, the candidate loop
 # over voxel_tris) after the scene and, for Line Space kernels, linespace.h.
@@ -113,6 +115,6 @@ def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers
     the structure's own, after TRACE_HEADERS (or LS_TRACE_HEADERS with LEAF_LINE_SPACE: its
     cells may hold a Line Space)."""
     common = LS_TRACE_HEADERS if line_space else TRACE_HEADERS
-    defines = (("LEAF_LINE_SPACE", "1"),) if line_space else ()
+    defines = (("TRIANGLE_RECORDS", "1"),) + ((("LEAF_LINE_SPACE", "1"),) if line_space else ())
     return KernelSpec(name, common + headers, body, TRACE_SCENE_BUFFERS + structure_buffers + RAY_BUFFERS,
                       uniforms, defines)
