@@ -232,7 +232,7 @@ def test_leaf_size_key_and_flag(tmp_path):
     cases = load_scenario(str(path)).cases
     keys = sorted(c.key for c in cases)
     assert len(cases) == 5 and sum(k.endswith("|l4") for k in keys) == 2
-    assert any(k.endswith("|bvh|opencl|r8|n0|k0|l8") for k in keys)  # 0: the default, as built
+    assert any(k.endswith(f"|bvh|opencl|r8|n0|k0|l{bvh.DEFAULT_LEAF_SIZE}") for k in keys)  # 0: the default, as built
     assert any(k.endswith("|bvh-ls|opencl|r8|n2|k0|l16") for k in keys)
     assert [k for k in keys if "|grid|" in k] == ["cornell|primary@64x64|grid|opencl|r8|n0|k0"]
     bvh_case = next(c for c in cases if c.structure == "bvh" and c.leaf_size == 4)

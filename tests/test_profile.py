@@ -291,3 +291,16 @@ def test_hotloop_cpu_seconds():
     assert out["case"] == "grid opencl r8 primary"
     assert out["cpu_seconds"] > 0 and out["embree_cpu_seconds"] > 0
     assert out["mrays_per_cpu_second"] == pytest.approx(256 / out["cpu_seconds"] / 1e6)
+
+
+@pytest.mark.parametrize("variant", [["--leaf-size", "8", "--leaf-size-b", "2"], ["--defines", "UNUSED_DEFINE=3"]])
+def test_ab_alternates_two_variants_in_one_process(variant):
+    """lsbench.profile.ab (docs/profiles.md, section 7): both variants traced, the same hits (a
+    BVH's leaf size and an unused define change no closest hit), one line with the ratio."""
+    res = subprocess.run([sys.executable, "-m", "lsbench.profile.ab", "cornell", "bvh", "opencl", "1",
+                          "--size", "16x16", "--pairs", "3", *variant], cwd=REPO, capture_output=True, text=True,
+                         timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert res.returncode == 0, res.stderr
+    line = res.stdout.strip().splitlines()[-1]
+    assert line.startswith("bvh opencl primary, B = ") and "3 pairs" in line
+    assert line.endswith("hits identical: True")

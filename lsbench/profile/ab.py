@@ -1,0 +1,88 @@
+"""A/B of two variants of one case in ONE process, their trace launches alternated (A B A B ...),
+so both see the same load on a shared machine (docs/profiles.md, section 7):
+
+    python -m lsbench.profile.ab SCENE STRUCTURE BACKEND RES [--rays SET] [--size WxH]
+        [--camera ex,ey,ez:tx,ty,tz[:fov]] [--pairs K] [--leaf-size L]
+        (--defines NAME[=VALUE],... | --local-size N | --leaf-size-b L)
+
+A is the case as built; B is its trace kernel compiled with extra defines (a variant kept behind
+an #ifdef while it is measured), with another work-group size, or a second build with another
+leaf size. Prints each variant's min and median device time, the median of the K per-pair ratios
+B/A with its quartiles, and whether B's hits equal A's (prim ids and distances). A single pair
+swings by ±10 % under load; the median of 20 pairs resolves about 3 %.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+
+import numpy as np
+
+
+def main(argv=None) -> None:
+    from lsbench import backends
+    from lsbench.backends import BuildParams
+    from lsbench.commands.common import parse_camera, parse_size
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scene import Camera
+    from lsbench.inputs.scenes import load_scene
+
+    p = argparse.ArgumentParser(prog="python -m lsbench.profile.ab", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene")
+    p.add_argument("structure")
+    p.add_argument("backend")
+    p.add_argument("resolution", type=int)
+    p.add_argument("--ls-n", type=int, default=0)
+    p.add_argument("--rays", default="primary")
+    p.add_argument("--size", default="512x512")
+    p.add_argument("--camera", help="default: the scene's own")
+    p.add_argument("--pairs", type=int, default=20)
+    p.add_argument("--leaf-size", type=int, default=0, help="A's leaf size (BVHs; 0: the default)")
+    variant = p.add_mutually_exclusive_group(required=True)
+    variant.add_argument("--defines", help="B's extra defines: NAME[=VALUE],...")
+    variant.add_argument("--local-size", type=int, help="B's work-group size")
+    variant.add_argument("--leaf-size-b", type=int, help="B: a second build with this leaf size")
+    args = p.parse_args(argv)
+
+    scene = load_scene(args.scene)
+    width, height = parse_size(args.size)
+    camera = Camera(*parse_camera(args.camera)) if args.camera else None
+    rays = make_rays(args.rays, scene, width, height, camera, ())
+    device = backends.get_device(args.backend)
+
+    def build(leaf_size):
+        return backends.build(device, args.structure, scene, BuildParams(
+            resolution=(args.resolution,) * 3, ls_n=args.ls_n, leaf_size=leaf_size))
+
+    a = build(args.leaf_size)
+    if args.leaf_size_b is not None:
+        b, label = build(args.leaf_size_b), f"leaf size {args.leaf_size_b}"
+    else:
+        b = dataclasses.replace(a)
+        if args.local_size is not None:
+            b.trace_spec, label = dataclasses.replace(a.trace_spec, local_size=args.local_size), \
+                f"local size {args.local_size}"
+        else:
+            pairs = [d.partition("=") for d in args.defines.split(",")]
+            b.trace_spec = a.trace_spec.with_defines(**{k: (v if sep else 1) for k, sep, v in pairs})
+            label = args.defines
+    hits_a, hits_b = backends.trace(a, rays), backends.trace(b, rays)
+    same = (np.array_equal(hits_a.prim_ids, hits_b.prim_ids)
+            and np.array_equal(hits_a.distances, hits_b.distances))
+    times = ([], [])
+    for _ in range(args.pairs):
+        for built, out in zip((a, b), times):
+            out.append(min(backends.time_trace(built, rays, warmup=0, repeats=1).seconds))
+    ratios = [tb / ta for ta, tb in zip(*times)]
+    (ta, tb) = times
+    print(f"{args.structure} {args.backend} {args.rays}, B = {label}: "
+          f"A min {min(ta) * 1e3:.1f} median {statistics.median(ta) * 1e3:.1f} ms | "
+          f"B min {min(tb) * 1e3:.1f} median {statistics.median(tb) * 1e3:.1f} ms | "
+          f"B/A median {statistics.median(ratios):.3f} (quartiles {np.quantile(ratios, 0.25):.3f}-"
+          f"{np.quantile(ratios, 0.75):.3f}, {args.pairs} pairs) | hits identical: {same}")
+
+
+if __name__ == "__main__":
+    main()
