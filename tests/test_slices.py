@@ -173,3 +173,20 @@ def test_glsl_reruns_groups_the_driver_still_cut_with_half_the_budget():
         np.testing.assert_array_equal(hits.prim_ids, backends.trace(reference, rays).prim_ids)
     finally:
         reference.release()
+
+
+def test_records_name_the_slice_budget_in_force(monkeypatch):
+    """A record says how many loop iterations one launch allowed per ray (record.slice_budget):
+    llvmpipe's own budget, none on PoCL, or the forced LSBENCH_SLICE_BUDGET (which also splits the
+    trace into more launches: trace_slices)."""
+    from lsbench.inputs.scenario import Case, RunSettings
+    from lsbench.running.execute import execute
+
+    settings = RunSettings(width=16, height=16, repeats=1, warmup=0, embree_timing=False)
+    run = {b: execute(Case("cornell", "grid", b, "8", width=16, height=16), settings) for b in ("glsl", "opencl")}
+    assert run["glsl"]["slice_budget"] == backends.get_device("glsl").loop_budget
+    assert run["opencl"]["slice_budget"] is None and run["opencl"]["trace_slices"] == 1
+    monkeypatch.setenv("LSBENCH_SLICE_BUDGET", "2")
+    forced = execute(Case("cornell", "grid", "opencl", "8", width=16, height=16), settings)
+    assert forced["status"] == "ok" and forced["unexplained"] == 0
+    assert forced["slice_budget"] == 2 and forced["trace_slices"] > 1

@@ -78,6 +78,7 @@ class Record:
     trace_cv: float | None = None
     clock: str | None = None
     trace_slices: int | None = None
+    slice_budget: int | None = None
     rays_per_second: float | None = None
     fps: float | None = None
     embree_trace_seconds: float | None = None
