@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lsbench import backends
+from lsbench.backends.structures import bvh
 from lsbench.profile import simd
 from lsbench.cli import build_parser
 from lsbench.commands.speedtest import speedtest_cases
@@ -184,3 +185,13 @@ def test_tiled_trace_equals_given_order(device, structure, resolution, ls_n):
     np.testing.assert_array_equal(tiled.prim_ids, plain.prim_ids)
     np.testing.assert_array_equal(tiled.distances, plain.distances)
     np.testing.assert_array_equal(tiled.work[:, :3], plain.work[:, :3])  # [:, 3] is the clock
+
+
+def test_a_bvh_row_names_its_leaf_size(tmp_path):
+    """A BVH has no grid resolution: its row gives the leaf size it was built with."""
+    out = tmp_path / "speed.json"
+    proc = lsbench("speedtest", "cornell", "--size", "16x16", "--structures", "bvh", "--backends", "opencl",
+                   "--out", out, check=0)
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["status"] == "ok" and row["leaf_size"] == bvh.DEFAULT_LEAF_SIZE
+    assert table_rows(proc.stdout)[("bvh", "opencl")][3] == f"leaf={bvh.DEFAULT_LEAF_SIZE}"

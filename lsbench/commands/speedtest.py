@@ -165,7 +165,7 @@ def speedtest_cases(args, settings_scenario: Scenario, width: int, height: int) 
 # --- one row per case ----------------------------------------------------------------------------
 
 ROW_FIELDS = ("scene", "rays", "width", "height", "structure", "backend", "resolution", "ls_n",
-              "ls_min_candidates", "status", "reason", "rays_per_second", "embree_rays_per_second",
+              "ls_min_candidates", "leaf_size", "status", "reason", "rays_per_second", "embree_rays_per_second",
               "x_embree", "memory_bytes", "build_seconds", "agreement", "unexplained",
               "iterations_per_ray", "candidate_tests_per_ray", "linespace_lookups_per_ray",
               "simd_efficiency_steps_w32", "simd_efficiency_tests_w32", "simd_width_device",
@@ -199,7 +199,8 @@ def speed_table(rows: list[dict], work: bool = False) -> list[str]:
     lines = []
     for r in rows:
         ok = r["status"] == "ok"
-        line = [r["scene"], r["structure"], r["backend"], r["resolution"], str(r["ls_n"] or "-"),
+        res = f"leaf={r['leaf_size']}" if r.get("leaf_size") else r["resolution"]  # a BVH has no grid
+        line = [r["scene"], r["structure"], r["backend"], res, str(r["ls_n"] or "-"),
                 _num(r["rays_per_second"] and r["rays_per_second"] / 1e6, ".3f") if ok else "-",
                 _num(r["embree_rays_per_second"] and r["embree_rays_per_second"] / 1e6, ".3f"),
                 _num(r["x_embree"], ".3f"), fmt_mib(r["memory_bytes"]) if ok else "-",
