@@ -660,6 +660,15 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
         BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)
         BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
         node = BVH_NONE;
+        // The nearest hit slot is on top; a node there is visited next without the pop loop's
+        // checks (its entry lies before the closest hit: tn <= tf <= best). PoCL, Sponza 512²
+        // primary: 0.949 and 0.977 of the device time (medians of 20 alternated pairs,
+        // lsbench.profile.ab); incoherent rays and llvmpipe unchanged (1.005, 1.002).
+        if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {
+            sp -= 1;
+            node = stack[sp];
+            continue;
+        }
         while (sp > 0) {
             sp -= 1;
             uint e = stack[sp];
