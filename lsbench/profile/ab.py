@@ -6,7 +6,7 @@ so both see the same load on a shared machine (docs/profiles.md, section 7):
         (--defines NAME[=VALUE],... | --local-size N | --leaf-size-b L)
 
 A is the case as built; B is its trace kernel compiled with extra defines (a variant kept behind
-an #ifdef while it is measured), with another work-group size, or a second build with another
+an #ifdef while it is measured; one A has, e.g. BVH_STACK, is replaced), with another work-group size, or a second build with another
 leaf size. Prints each variant's min and median device time, the median of the K per-pair ratios
 B/A with its quartiles, and whether B's hits equal A's (prim ids and distances). A single pair
 swings by ±10 % under load; the median of 20 pairs resolves about 3 %.
@@ -65,8 +65,9 @@ def main(argv=None) -> None:
             b.trace_spec, label = dataclasses.replace(a.trace_spec, local_size=args.local_size), \
                 f"local size {args.local_size}"
         else:
-            pairs = [d.partition("=") for d in args.defines.split(",")]
-            b.trace_spec = a.trace_spec.with_defines(**{k: (v if sep else 1) for k, sep, v in pairs})
+            given = {k: (v if sep else "1") for k, sep, v in (d.partition("=") for d in args.defines.split(","))}
+            kept = tuple((k, v) for k, v in a.trace_spec.defines if k not in given)  # a define given replaces A's
+            b.trace_spec = dataclasses.replace(a.trace_spec, defines=kept + tuple(given.items()))
             label = args.defines
     hits_a, hits_b = backends.trace(a, rays), backends.trace(b, rays)
     same = (np.array_equal(hits_a.prim_ids, hits_b.prim_ids)
