@@ -22,22 +22,9 @@ import numpy as np
 
 def main(argv=None) -> None:
     from lsbench import backends
-    from lsbench.backends import BuildParams
-    from lsbench.commands.common import parse_camera, parse_size
-    from lsbench.inputs.rays import make_rays
-    from lsbench.inputs.scene import Camera
-    from lsbench.inputs.scenes import load_scene
+    from lsbench.profile.hotloop import case_arguments, load_case
 
-    p = argparse.ArgumentParser(prog="python -m lsbench.profile.ab", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene")
-    p.add_argument("structure")
-    p.add_argument("backend")
-    p.add_argument("resolution", type=int)
-    p.add_argument("--ls-n", type=int, default=0)
-    p.add_argument("--rays", default="primary")
-    p.add_argument("--size", default="512x512")
-    p.add_argument("--camera", help="default: the scene's own")
+    p = case_arguments("python -m lsbench.profile.ab", __doc__, size="512x512")
     p.add_argument("--pairs", type=int, default=20)
     p.add_argument("--leaf-size", type=int, default=0, help="A's leaf size (BVHs; 0: the default)")
     variant = p.add_mutually_exclusive_group(required=True)
@@ -45,16 +32,7 @@ def main(argv=None) -> None:
     variant.add_argument("--local-size", type=int, help="B's work-group size")
     variant.add_argument("--leaf-size-b", type=int, help="B: a second build with this leaf size")
     args = p.parse_args(argv)
-
-    scene = load_scene(args.scene)
-    width, height = parse_size(args.size)
-    camera = Camera(*parse_camera(args.camera)) if args.camera else None
-    rays = make_rays(args.rays, scene, width, height, camera, ())
-    device = backends.get_device(args.backend)
-
-    def build(leaf_size):
-        return backends.build(device, args.structure, scene, BuildParams(
-            resolution=(args.resolution,) * 3, ls_n=args.ls_n, leaf_size=leaf_size))
+    _, rays, _, build = load_case(args)
 
     a = build(args.leaf_size)
     if args.leaf_size_b is not None:

@@ -19,37 +19,52 @@ import statistics
 import time
 
 
-def main(argv=None) -> None:
-    from lsbench import backends
-    from lsbench.backends import BuildParams
-    from lsbench.commands.common import parse_camera, parse_size
-    from lsbench.inputs.rays import make_rays
-    from lsbench.inputs.scene import Camera
-    from lsbench.inputs.scenes import load_scene
-    from lsbench.oracle.embree import embree_timer
-
-    p = argparse.ArgumentParser(prog="python -m lsbench.profile.hotloop", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def case_arguments(prog: str, doc: str, size: str = "256x256") -> argparse.ArgumentParser:
+    """The arguments naming one case, shared by this tool and lsbench.profile.ab."""
+    p = argparse.ArgumentParser(prog=prog, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene")
     p.add_argument("structure")
     p.add_argument("backend")
     p.add_argument("resolution", type=int)
     p.add_argument("--ls-n", type=int, default=0)
     p.add_argument("--rays", default="primary")
-    p.add_argument("--size", default="256x256")
+    p.add_argument("--size", default=size)
     p.add_argument("--camera", help="default: the scene's own")
-    what = p.add_mutually_exclusive_group(required=True)
-    what.add_argument("--seconds", type=float)
-    what.add_argument("--cpu-repeats", type=int)
-    args = p.parse_args(argv)
+    return p
+
+
+def load_case(args):
+    """(scene, rays, device, build) of the parsed case arguments; build(leaf_size=0) builds it."""
+    from lsbench import backends
+    from lsbench.backends import BuildParams
+    from lsbench.commands.common import parse_camera, parse_size
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scene import Camera
+    from lsbench.inputs.scenes import load_scene
 
     scene = load_scene(args.scene)
     width, height = parse_size(args.size)
     camera = Camera(*parse_camera(args.camera)) if args.camera else None
     rays = make_rays(args.rays, scene, width, height, camera, ())
     device = backends.get_device(args.backend)
-    built = backends.build(device, args.structure, scene, BuildParams(resolution=(args.resolution,) * 3,
-                                                                      ls_n=args.ls_n))
+
+    def build(leaf_size: int = 0):
+        return backends.build(device, args.structure, scene, BuildParams(
+            resolution=(args.resolution,) * 3, ls_n=args.ls_n, leaf_size=leaf_size))
+    return scene, rays, device, build
+
+
+def main(argv=None) -> None:
+    from lsbench import backends
+    from lsbench.oracle.embree import embree_timer
+
+    p = case_arguments("python -m lsbench.profile.hotloop", __doc__)
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--seconds", type=float)
+    what.add_argument("--cpu-repeats", type=int)
+    args = p.parse_args(argv)
+    scene, rays, _, build = load_case(args)
+    built = build()
     label = f"{args.structure} {args.backend} r{args.resolution}" + (f" N{args.ls_n}" if args.ls_n else "")
     if args.seconds is not None:
         backends.trace(built, rays)
