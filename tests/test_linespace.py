@@ -96,10 +96,13 @@ def segments_hit(p, q, tris) -> np.ndarray:
 
 
 def read_linespaces(built):
+    """ls_ids and the shafts' lists expanded to one per shaft (CSR offsets, candidates), decoded
+    from the shared-sets layout as the traversal reads it (linespace.shaft_lists)."""
     d = built.device
-    return (d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64),
-            d.read(built.buffers["ls_shaft_offsets"], np.uint32).astype(np.int64),
-            d.read(built.buffers["ls_shaft_tris"], np.uint32).astype(np.int64))
+    offsets, candidates = linespace.shaft_lists(linespace.read_array(d, built.buffers, "ls_shaft_offsets"),
+                                                linespace.read_array(d, built.buffers, "ls_shaft_tris"),
+                                                built.stats["shafts_per_cell"])
+    return d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64), offsets, candidates
 
 
 @pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (3, None)])
@@ -380,7 +383,7 @@ def test_buffer_limit_raises_naming_it(device, monkeypatch):
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("size,limit", [(0.25, 16384), (0.25, 8192), (0.2, 6144)])  # 2, 3, 4 buffers
+@pytest.mark.parametrize("size,limit", [(0.5, 8192), (0.3, 6144), (0.5, 6144)])  # 2, 3, 4 buffers
 def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, structure, size, limit):
     """A candidate list past the per-buffer limit is split over several buffers (up to 4) and
     traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
@@ -391,7 +394,7 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     params = BuildParams(resolution=(4, 4, 4), ls_n=1)
     whole = backends.build(device, structure, scene, params)
     whole_hits = backends.trace(whole, rays)
-    candidates = whole.stats["candidate_references"]
+    candidates = whole.stats["ls_set_references"]  # the distinct sets' ids: what ls_shaft_tris holds
     whole.release()
     monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: limit))
     split = backends.build(device, structure, scene, params)
@@ -411,13 +414,15 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 16384, 3), (150, 0.2, 16384, 4)])
+@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 8192, 3), (80, 0.12, 8192, 4)])
 def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structure, n_tris, size, limit, chunks):
     """Shaft offsets past the per-buffer limit are split too (the cells the thesis could not run,
-    Sponza N=3 at 256^3, have 2.5 GiB of offsets): the chunk-wise scan with carries gives the
-    whole build's offsets entry for entry, and the split build traces exactly as the whole one.
-    Only the offsets get the small limit here, so the candidates stay one buffer."""
-    scene = random_scene(n_tris, size=size, seed=7)  # 61 or 42 cells with candidates at 4^3
+    Sponza N=3 at 256^3, had 2.5 GiB of offsets in the one-list-per-shaft layout): the split
+    build gives the whole build's offsets entry for entry and traces exactly as the whole one.
+    The build's per-shaft arrays (item offsets, set words) are split in two as well, so their
+    chunk-wise scan with carries and split macros are in the comparison; the candidates stay one
+    buffer."""
+    scene = random_scene(n_tris, size=size, seed=7)  # 42 to 61 cells with candidates at 4^3
     rays = random_rays(scene, 190)
     params = BuildParams(resolution=(4, 4, 4), ls_n=2)
     whole = backends.build(device, structure, scene, params)
@@ -426,7 +431,8 @@ def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structur
     whole.release()
     split_array = linespace.split_array
     monkeypatch.setattr(linespace, "split_array", lambda d, base, macro, entries: split_array(
-        d, base, macro, entries, limit=limit if base == "ls_shaft_offsets" else None))
+        d, base, macro, entries, limit={"ls_shaft_offsets": limit, "ls_item_offsets": 2**15,
+                                        "ls_shaft_sets": 2**15}.get(base)))
     split = backends.build(device, structure, scene, params)
     assert split.stats["ls_offset_buffers"] == chunks == -(-4 * len(whole_offsets) // limit)
     assert split.stats["ls_tri_buffers"] == 1
@@ -439,5 +445,5 @@ def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structur
     np.testing.assert_array_equal(hits.prim_ids, whole_hits.prim_ids)
     np.testing.assert_array_equal(hits.distances, whole_hits.distances)
     monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", chunks - 1)
-    with pytest.raises(DeviceLimitError, match="buffer 'ls_shaft_offsets' needs .* more than"):
+    with pytest.raises(DeviceLimitError, match="buffer 'ls_(shaft|item)_offsets' needs .* more than"):
         backends.build(device, structure, scene, params)

@@ -65,7 +65,7 @@ LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "ui
 # The build's batch of cells (linespace.h: ls_shaft_kernel, ls_masks_kernel).
 LS_BATCH_UNIFORMS = LS_UNIFORMS + (Uniform("ls_chunk", "uint"), Uniform("ls_item_base", "uint"),
                                    Uniform("ls_ref_base", "uint"), Uniform("ls_cell_first", "uint"),
-                                   Uniform("ls_cell_end", "uint"))
+                                   Uniform("ls_cell_end", "uint"), Uniform("ls_bits_base", "uint"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
@@ -85,9 +85,15 @@ LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16}
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
-# Most bytes the count's decisions (one bit per shaft and candidate) may take to spare the fill
-# the tests; a larger case tests every pair again in the fill.
+# Most bytes the count's decisions (one bit per shaft and candidate) may take. The sets are found
+# from them; where those of all cells do not fit, the cells go in batches whose bits do, each
+# batch's sets are found while its bits are there, and the fill tests the pairs again.
 LS_PAIR_BITS_BYTES = 256 * 2**20
+# Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the hashes,
+# slots and heads 8.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
+LS_GROUP_SHAFTS = 1 << 22
+# The shaft -> set index is 16 bits wide (linespace.h): a cell may hold at most 2^16 sets.
+LS_MAX_SETS_PER_CELL = 1 << 16
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
@@ -121,13 +127,39 @@ LS_FILL_FROM_BITS = KernelSpec(
      Buf("ls_item_bases", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
      Buf("ls_shaft_tris", "uint", "w")),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
-LS_GATHER = KernelSpec(
-    "ls_gather", LS_HEADERS_NO_SCENE, "ls_gather_kernel",
-    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_offsets", "uint", "w")),
+# Finding the distinct sets of a group of cells (linespace.h: ls_hash_kernel .. ls_shaft_set_kernel).
+_ROW_BUFFERS = (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_ref_bases", "uint", "r"), LS_PAIR_BITS_FILL)
+LS_HASH = KernelSpec("ls_hash", LS_HEADERS_NO_SCENE, "ls_hash_kernel",
+                     _ROW_BUFFERS + (Buf("ls_set_hash", "uint", "w"),), LS_BATCH_UNIFORMS)
+LS_INSERT = KernelSpec(
+    "ls_insert", LS_HEADERS_NO_SCENE, "ls_insert_kernel",
+    _ROW_BUFFERS + (Buf("ls_set_hash", "uint", "r"), Buf("ls_set_table", "uint", "rw"), Buf("ls_set_slot", "uint", "w")),
     LS_BATCH_UNIFORMS)
-LS_NONEMPTY = KernelSpec(
-    "ls_nonempty", LS_HEADERS_NO_SCENE, "ls_nonempty_kernel",
-    (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_stats", "uint", "rw")), LS_UNIFORMS)
+LS_MIN = KernelSpec("ls_min", LS_HEADERS_NO_SCENE, "ls_min_kernel",
+                    (Buf("ls_set_table", "uint", "rw"), Buf("ls_set_slot", "uint", "r")), LS_BATCH_UNIFORMS)
+LS_HEADS = KernelSpec(
+    "ls_heads", LS_HEADERS_NO_SCENE, "ls_heads_kernel",
+    (Buf("ls_set_table", "uint", "r"), Buf("ls_set_slot", "uint", "rw"), Buf("ls_set_heads", "uint", "rw"),
+     Buf("ls_cell_sets", "uint", "rw")), LS_BATCH_UNIFORMS)
+LS_SHAFT_SET = KernelSpec(
+    "ls_shaft_set", LS_HEADERS_NO_SCENE, "ls_shaft_set_kernel",
+    (Buf("ls_set_slot", "uint", "r"), Buf("ls_set_heads", "uint", "r"), Buf("ls_shaft_sets", "uint", "w")),
+    LS_BATCH_UNIFORMS)
+# After the scans: set lengths, the offsets array, each item's destination in the sets' lists.
+LS_SET_LEN = KernelSpec(
+    "ls_set_len", LS_HEADERS_NO_SCENE, "ls_set_len_kernel",
+    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_sets", "uint", "r"),
+     Buf("ls_cell_sets", "uint", "r"), Buf("ls_set_lens", "uint", "w"), Buf("ls_stats", "uint", "rw")),
+    LS_UNIFORMS)
+LS_LAYOUT = KernelSpec(
+    "ls_layout", LS_HEADERS_NO_SCENE, "ls_layout_kernel",
+    (Buf("ls_cell_sets", "uint", "r"), Buf("ls_shaft_sets", "uint", "r"), Buf("ls_set_lens", "uint", "r"),
+     Buf("ls_shaft_offsets", "uint", "w")), LS_BATCH_UNIFORMS)
+LS_DEST = KernelSpec(
+    "ls_dest", LS_HEADERS_NO_SCENE, "ls_dest_kernel",
+    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "rw"), Buf("ls_shaft_sets", "uint", "r"),
+     Buf("ls_cell_sets", "uint", "r"), Buf("ls_set_lens", "uint", "r")), LS_UNIFORMS)
+LS_ZERO = KernelSpec("ls_zero", LS_HEADERS_NO_SCENE, "ls_zero_kernel", (Buf("ls_zero", "uint", "w"),), LS_UNIFORMS)
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
     (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
@@ -136,7 +168,8 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_GATHER, LS_NONEMPTY, LS_CHECK, LS_CARRY)
+BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_SHAFT_SET,
+               LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
@@ -261,12 +294,12 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
     return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
 
 
-def _count_fill_specs(device: Device, pair_bits: bool) -> tuple[KernelSpec, KernelSpec]:
-    count, fill = _with_test(device, LS_COUNT), _with_test(device, LS_FILL)
-    if not pair_bits:
-        return count, fill
-    return (dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1),
-            LS_FILL_FROM_BITS)
+def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec, KernelSpec]:
+    """The count (always keeping its decisions as pair bits: the sets are found from them) and
+    the fill: from the bits where those of all cells fit, else testing the pairs again."""
+    count = _with_test(device, LS_COUNT)
+    count = dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
+    return count, (LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL))
 
 
 def prepare(device: Device) -> None:
@@ -327,13 +360,16 @@ class BuildPlan:
 
 
 def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
-               mask_bytes: int = LS_MASK_BYTES) -> BuildPlan:
-    """ranges: (cells, 2) begin, end of each cell's list."""
+               mask_bytes: int = LS_MASK_BYTES, bits_bytes: int | None = None) -> BuildPlan:
+    """ranges: (cells, 2) begin, end of each cell's list. bits_bytes: where given, a batch's pair
+    bits (one per shaft and reference) fit it too."""
     lengths = (ranges[:, 1].astype(np.int64) - ranges[:, 0]).clip(min=0)
     chunks = np.maximum(1, -(-lengths // chunk))
     item_bases = np.concatenate([[0], np.cumsum(per_cell * chunks)])
     ref_bases = np.concatenate([[0], np.cumsum(lengths)])
     max_refs = max(1, mask_bytes // (4 * patches))
+    if bits_bytes is not None:
+        max_refs = max(1, min(max_refs, 8 * bits_bytes // per_cell))
     batches, c0, cells = [], 0, len(lengths)
     while c0 < cells:
         c1 = int(np.searchsorted(ref_bases, ref_bases[c0] + max_refs, side="right")) - 1
@@ -350,34 +386,57 @@ def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro:
     return other, {new: bufs[old] for old, new in zip(split.names, other.names)}
 
 
-def predicted_bytes(device: Device, cells: int, n: int, candidates: int) -> dict[str, int]:
-    """The bytes of each buffer build_linespaces returns for `cells` Line Spaces of N = n holding
-    `candidates` shaft candidates in all (lsbench/model/bytes.py): exact given `candidates`, which
-    a model estimates from a sample of cells before the build. Split arrays as split_array
-    splits them (DeviceLimitError where they would need more buffers than LS_MAX_CHUNKS)."""
-    n_shafts = cells * shafts_per_cell(n)
-    if n_shafts == 0:
+@dataclass(frozen=True)
+class ListSizes:
+    """What the lists of a set of Line Spaces hold besides their fixed per-cell part: the distinct
+    candidate sets of all cells together and the triangle ids of those sets."""
+    sets: int
+    references: int
+
+    @classmethod
+    def of(cls, stats: dict) -> "ListSizes":
+        return cls(int(stats.get("ls_sets", 0)), int(stats.get("ls_set_references", 0)))
+
+
+def offset_entries(cells: int, n: int, sets: int) -> int:
+    """Entries of ls_shaft_offsets (layout: shaders/common/linespace.h): 2 header words, cells + 1
+    first sets, (15 N^4 + 1) / 2 words of 16-bit set indices per cell, sets + 1 set offsets."""
+    return 4 + cells + cells * ((shafts_per_cell(n) + 1) // 2) + sets
+
+
+def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dict[str, int]:
+    """The bytes of each buffer build_linespaces returns for `cells` Line Spaces of N = n whose
+    distinct sets are `lists` (lsbench/model/bytes.py): exact given `lists`, which a model
+    estimates from a sample of cells before the build. Split arrays as split_array splits them
+    (DeviceLimitError where they would need more buffers than LS_MAX_CHUNKS)."""
+    if cells * shafts_per_cell(n) == 0:
         return {"ls_shaft_offsets": 4, "ls_shaft_tris": 4}
     out = {}
-    for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1),
-                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidates)):
+    for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells, n, lists.sets)),
+                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", lists.references)):
         out.update({name: max(4 * array.chunk_entries(i), 4) for i, name in enumerate(array.names)})
     return out
 
 
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
                      n: int) -> LineSpaces:
-    """Line Spaces of all cells: cull masks -> count -> scan -> fill, all on the device, in batches
-    of cells (their masks) and chunks of candidates (the driver's loop budget)."""
+    """Line Spaces of all cells: cull masks -> count (with pair bits) -> the distinct sets of each
+    cell -> scans -> fill of each set's list, all on the device, in batches of cells (their masks
+    and bits), groups of cells (the sets' hash tables) and chunks of candidates (the driver's loop
+    budget)."""
     n = check_n(n)
     per_cell = shafts_per_cell(n)
     patches = 6 * n * n
     n_shafts = cells.count * per_cell
+    if per_cell > LS_MAX_SETS_PER_CELL:
+        raise DeviceLimitError(f"N={n}: {per_cell} shafts per cell may hold more distinct sets than "
+                               f"the 16-bit set indices ({LS_MAX_SETS_PER_CELL}) number")
     # The limits in the order a bigger device would meet them: buffers per array, device memory,
     # then the 32-bit indices (which no device with less than 16 GiB for the offsets reaches).
-    # Checked before the long count pass.
-    offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1)
-    device.check_memory("ls_shaft_offsets", 4 * (n_shafts + 1))
+    # Checked (for the offsets' fixed part) before the long count pass.
+    fixed_entries = offset_entries(cells.count, n, 0)
+    split_array(device, "ls_shaft_offsets", "LS_OFFSET", fixed_entries)
+    device.check_memory("ls_shaft_offsets", 4 * fixed_entries)
     if n_shafts + 1 > UINT32_MAX:
         raise DeviceLimitError(
             f"{cells.count} Line Spaces x {per_cell} shafts = {n_shafts} shafts overflow 32-bit "
@@ -388,89 +447,142 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         no_tris = device.alloc("ls_shaft_tris", 4)
         no_tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
-                 "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
-                 "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
+                 "non_empty_shafts": 0, "candidate_references": 0, "ls_sets": 0, "ls_set_references": 0,
+                 "ls_bytes": 8, "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
                  "ls_candidate_chunk": candidate_chunk(device), "ls_work_items": 0, "ls_cell_batches": 0,
                  "ls_pair_bits": False}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
     ranges = device.read(cells.ranges, np.uint32, 2 * cells.count).reshape(-1, 2)
-    plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), min(LS_MASK_BYTES, device.max_buffer_bytes))
+    mask_bytes = min(LS_MASK_BYTES, device.max_buffer_bytes)
+    plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), mask_bytes)
     if plan.items + 1 > UINT32_MAX:
         raise DeviceLimitError(
             f"{plan.items} count/fill work items (shafts x chunks of {plan.chunk} candidates) overflow "
             "32-bit item indices (uint, 2^32 - 1)")
-    chunked = plan.items != n_shafts
+    # The pair bits of all cells where they fit (the fill then reads them), else of one batch.
+    bits_limit = min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
+    pairs = int(plan.ref_bases[-1]) * per_cell
+    all_bits = pairs < UINT32_MAX and 4 * (-(-pairs // 32)) <= bits_limit
+    if all_bits:
+        try:
+            device.check_memory("ls_pair_bits", 4 * (-(-pairs // 32)))
+        except DeviceLimitError:
+            all_bits = False
+    if not all_bits:
+        plan = plan_build(ranges, per_cell, patches, plan.chunk, mask_bytes, bits_limit)
+        pairs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches) * per_cell
+    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell, device.max_buffer_bytes // (8 * per_cell)))
+    group_shafts = group_cells * per_cell
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
+
+    def temp(name: str, nbytes: int, zero: bool = True) -> DeviceBuffer:
+        temps.append(device.alloc(name, max(int(nbytes), 4), zero=zero))
+        return temps[-1]
+
+    def zero(buf: DeviceBuffer, words: int) -> None:
+        device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
+
     try:
-        planes = device.alloc("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
-        temps.append(planes)
+        planes = temp("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
-        stats_buf = device.alloc("ls_stats", 16)
-        temps.append(stats_buf)
-        for name, values in (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)):
-            temps.append(device.upload(name, values.astype(np.uint32)))
+        stats_buf = temp("ls_stats", 16)
+        item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
+                                 (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
+        temps.extend((item_bases, ref_bases))
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
-        masks = device.alloc("ls_masks", 4 * max(most_refs * patches, 1), zero=False)
-        temps.append(masks)
+        masks = temp("ls_masks", 4 * most_refs * patches, zero=False)
+        bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
-                         ls_cell_tris=cells.tris, ls_item_bases=temps[-3], ls_ref_bases=temps[-2], ls_masks=masks)
-        offset_bufs = offsets.alloc(device, zero=True)  # entry n_shafts stays 0: it becomes the total
-        kept.extend(offset_bufs.values())
-        if chunked:  # one entry per (shaft, chunk), gathered into the shaft offsets after the fill
-            items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
-            device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
-            item_bufs = items.alloc(device, zero=True)
-            temps.extend(item_bufs.values())
-        else:  # the items are the shafts: count and scan in the offsets themselves
-            items, item_bufs = _renamed(offsets, offset_bufs, "ls_item_offsets", "LS_ITEM")
+                         ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
+                         ls_pair_bits=bits)
+        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
+        device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
+        item_bufs = items.alloc(device, zero=True)  # entry `items` stays 0: it becomes the total
+        temps.extend(item_bufs.values())
+        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", n_shafts)
+        shaft_set_bufs = shaft_sets.alloc(device, zero=False)
+        temps.extend(shaft_set_bufs.values())
+        cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
+        group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, ls_pair_bits=bits,
+                          ls_set_hash=temp("ls_set_hash", 4 * group_shafts, zero=False),
+                          ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
+                          ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
+                          ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
+                          ls_cell_sets=cell_sets, **shaft_set_bufs)
+        set_specs = (LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, shaft_sets.bind(LS_SHAFT_SET))
 
-        def batch_uniforms(c0: int, c1: int) -> dict:
+        def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
-                        ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1)
+                        ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
+                        ls_bits_base=bits_base)
 
-        def run_pass(spec: KernelSpec, bufs: dict, masks_ready: bool) -> None:
-            for c0, c1 in plan.batches:
-                bu = batch_uniforms(c0, c1)
-                if not masks_ready:
-                    device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
-                device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]), bufs, bu)
+        def find_sets(c0: int, c1: int, bits_base: int) -> None:
+            for g0 in range(c0, c1, group_cells):
+                g1 = min(g0 + group_cells, c1)
+                shafts = (g1 - g0) * per_cell
+                zero(group_bufs["ls_set_table"], 2 * shafts)
+                zero(group_bufs["ls_set_heads"], -(-shafts // 32))
+                for spec in set_specs:
+                    device.dispatch(spec, shafts, group_bufs, batch_uniforms(g0, g1, bits_base))
 
-        pairs = int(plan.ref_bases[-1]) * per_cell
-        bits_bytes = 4 * (-(-pairs // 32))
-        keep_bits = pairs < UINT32_MAX and bits_bytes <= min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
-        if keep_bits:
-            try:
-                device.check_memory("ls_pair_bits", bits_bytes)
-            except DeviceLimitError:
-                keep_bits = False  # the fill tests every pair again instead
-        count_spec, fill_spec = _count_fill_specs(device, keep_bits)
-        if keep_bits:
-            cell_bufs["ls_pair_bits"] = device.alloc("ls_pair_bits", max(bits_bytes, 4), zero=True)
-            temps.append(cell_bufs["ls_pair_bits"])
-        run_pass(items.bind(count_spec), dict(cell_bufs, ls_stats=stats_buf, **item_bufs), False)
+        count_spec, fill_spec = _count_fill_specs(device, all_bits)
+        count = items.bind(count_spec)
+        for c0, c1 in plan.batches:
+            bits_base = 0 if all_bits else int(plan.ref_bases[c0])
+            bu = batch_uniforms(c0, c1, bits_base)
+            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+            if not all_bits:
+                zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
+            device.dispatch(count, int(plan.item_bases[c1] - plan.item_bases[c0]),
+                            dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
+            if not all_bits:  # this batch's sets, while its bits are there
+                find_sets(c0, c1, bits_base)
+        if all_bits:
+            find_sets(0, cells.count, 0)
         total = _scan_split(device, items, item_bufs, u)
         # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
-        # for the wrap (a decreasing offset) on the device before trusting `total`.
+        # for the wrap (a decreasing offset) on the device before trusting `total`. The sets'
+        # lists hold no more than all shafts' lists.
         if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
-            flag = device.alloc("ls_check_flag", 4)
-            temps.append(flag)
+            flag = temp("ls_check_flag", 4)
             check, check_bufs = _renamed(items, item_bufs, "ls_shaft_offsets", "LS_OFFSET")
             device.dispatch(check.bind(LS_CHECK), plan.items, dict(check_bufs, ls_check_flag=flag), u)
             if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
                 raise DeviceLimitError(
                     f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
                     "references: over the 32-bit candidate offsets")
-        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", total)
+        n_sets = device.scan_in_place(cell_sets, cells.count + 1)
+        set_lens = split_array(device, "ls_set_lens", "LS_SET_LEN", n_sets + 1)
+        set_len_bufs = set_lens.alloc(device, zero=True)
+        temps.extend(set_len_bufs.values())
+        sets_bufs = dict(ls_item_bases=item_bases, ls_cell_sets=cell_sets, ls_stats=stats_buf,
+                         **item_bufs, **shaft_set_bufs, **set_len_bufs)
+
+        def bound(spec: KernelSpec) -> KernelSpec:
+            return set_lens.bind(shaft_sets.bind(items.bind(spec)))
+
+        device.dispatch(bound(LS_SET_LEN), n_shafts, sets_bufs, u)
+        set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
+        offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells.count, n, n_sets))
+        device.check_memory("ls_shaft_offsets", 4 * offsets.entries)
+        offset_bufs = offsets.alloc(device, zero=False)
+        kept.extend(offset_bufs.values())
+        device.dispatch(offsets.bind(bound(LS_LAYOUT)), offsets.entries, dict(sets_bufs, **offset_bufs),
+                        batch_uniforms(0, cells.count))
+        device.dispatch(bound(LS_DEST), n_shafts, sets_bufs, u)
+        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", set_refs)
+        device.check_memory("ls_shaft_tris", 4 * candidates.entries)
         tris_bufs = candidates.alloc(device, zero=False)
         kept.extend(tris_bufs.values())
         fill = candidates.bind(items.bind(fill_spec))
-        run_pass(fill, dict(cell_bufs, **item_bufs, **tris_bufs), keep_bits or len(plan.batches) == 1)
-        if chunked:
-            gather = offsets.bind(items.bind(LS_GATHER))
-            device.dispatch(gather, n_shafts + 1, dict(item_bufs, ls_item_bases=cell_bufs["ls_item_bases"],
-                                                       **offset_bufs), batch_uniforms(0, cells.count))
-        device.dispatch(offsets.bind(LS_NONEMPTY), n_shafts, dict(offset_bufs, ls_stats=stats_buf), u)
+        fill_bufs = dict(cell_bufs, **item_bufs, **tris_bufs)
+        masks_ready = all_bits or len(plan.batches) == 1
+        for c0, c1 in plan.batches:
+            bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
+            if not masks_ready:
+                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+            device.dispatch(fill, int(plan.item_bases[c1] - plan.item_bases[c0]), fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
@@ -483,7 +595,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for b in temps:
             device.release(b)
     device.finish()
-    if total == 0:  # the buffers are sized exactly, except the 4-byte stand-in for an empty list
+    if set_refs == 0:  # the buffers are sized exactly, except the 4-byte stand-in for an empty list
         tris_bufs["ls_shaft_tris"].used_bytes = 0
     stats = {
         "ls_n": n,
@@ -491,7 +603,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "linespace_cells": cells.count,
         "shafts": n_shafts,
         "non_empty_shafts": non_empty,
-        "candidate_references": total,
+        "candidate_references": total,  # all shafts' lists together, as one list per shaft held them
+        "ls_sets": n_sets,
+        "ls_set_references": set_refs,
         "ls_bytes": sum(b.nbytes for b in offset_bufs.values()) + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
         "ls_offset_buffers": offsets.chunks,
@@ -499,7 +613,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_candidate_chunk": plan.chunk,
         "ls_work_items": plan.items,
         "ls_cell_batches": len(plan.batches),
-        "ls_pair_bits": keep_bits,
+        "ls_pair_bits": all_bits,
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits)
@@ -517,3 +631,34 @@ def _scan_split(device: Device, array: SplitArray, bufs: dict[str, DeviceBuffer]
             device.dispatch(LS_CARRY, entries, {"ls_carry_chunk": bufs[name]}, dict(u, ls_carry=carry & UINT32_MAX))
         carry += chunk_total
     return carry
+
+
+# ---- Reading the layout on the host (tests, the model's sample) ---------------------------------
+def read_array(device: Device, buffers: dict[str, DeviceBuffer], base: str) -> np.ndarray:
+    """A split array's buffers (base, base1, base2, ...) read back as one int64 array."""
+    names = sorted((k for k in buffers if k == base or (k.startswith(base) and k[len(base):].isdigit())),
+                   key=lambda k: (len(k), k))
+    return np.concatenate([device.read(buffers[k], np.uint32) for k in names]).astype(np.int64)
+
+
+def shaft_ranges(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """(begin, end) in ls_shaft_tris of every shaft of every Line Space (cell-major), decoded from
+    ls_shaft_offsets as trace.h's shaft_list reads it."""
+    words = np.asarray(offset_words, np.int64)
+    if len(words) < 4:  # no Line Space
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    index_start, set_start = int(words[0]), int(words[1])
+    count, half = index_start - 3, (per_cell + 1) // 2
+    packed = words[index_start:index_start + count * half].reshape(count, half)
+    local = np.stack([packed & 0xFFFF, packed >> 16], axis=-1).reshape(count, 2 * half)[:, :per_cell]
+    sets = (words[2:2 + count, None] + local).ravel() + set_start
+    return words[sets], words[sets + 1]
+
+
+def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lists expanded to one per shaft: (CSR offsets, shafts + 1 entries; the candidates)."""
+    begin, end = shaft_ranges(offset_words, per_cell)
+    counts = end - begin
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    where = np.repeat(begin - offsets[:-1], counts) + np.arange(int(offsets[-1]))
+    return offsets, np.asarray(tris, np.int64)[where]
