@@ -662,3 +662,13 @@ def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tu
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     where = np.repeat(begin - offsets[:-1], counts) + np.arange(int(offsets[-1]))
     return offsets, np.asarray(tris, np.int64)[where]
+
+
+def cell_set_sizes(offset_words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct sets, their triangle ids) of each Line Space, from ls_shaft_offsets."""
+    words = np.asarray(offset_words, np.int64)
+    if len(words) < 4:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    count, set_start = int(words[0]) - 3, int(words[1])
+    first = words[2:3 + count]
+    return np.diff(first), np.diff(words[set_start + first])
