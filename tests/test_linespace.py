@@ -163,6 +163,7 @@ def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
     lists = voxel_lists(device, scene, res)
     ls_ids, offs, cand = read_linespaces(built)
     per_cell = 15 * n**4
+    sets, _ = linespace.cell_set_sizes(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), per_cell)
     g = built.geometry
     grid_tris = (scene.vertices[scene.faces].astype(np.float64) - np.asarray(g.origin)) / np.asarray(g.voxel_size)
     inner_total = border = 0
@@ -179,6 +180,9 @@ def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
         assert np.diff(base).sum() == got.sum(), "a triangle twice in one shaft"
         assert not (inner & ~got).any(), f"voxel {vox}: reference candidates missing {np.argwhere(inner & ~got)[:5]}"
         assert not (got & ~outer).any(), f"voxel {vox}: candidates the reference rejects {np.argwhere(got & ~outer)[:5]}"
+        # One list per distinct set: the cell stores exactly as many sets as its shafts have
+        # different candidate sets (none stored twice, no two different ones merged).
+        assert sets[ls_ids[vox]] == len(np.unique(got, axis=0)), f"voxel {vox}: sets stored twice or merged"
         inner_total += int(inner.sum())
         border += int((outer & ~inner).sum())
     assert inner_total > 100 and border <= 0.01 * inner_total, (inner_total, border)
@@ -221,6 +225,25 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     np.testing.assert_array_equal(offs, whole_lists[1])
     np.testing.assert_array_equal(ls_ids, whole_lists[0])
     for lo, hi in zip(offs[:-1], offs[1:]):  # the voxel lists may come in another order between builds
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    built.release()
+
+
+@pytest.mark.parametrize("mask", [0, 1])
+def test_sets_are_confirmed_word_by_word(device, monkeypatch, mask):
+    """The sets come from a hash of each shaft's decision bits, but equality is decided by
+    comparing the bits: with a hash of 0 or 1 bit (every set collides with others) the lists are
+    the full hash's, shaft by shaft, and the sets are laid out the same."""
+    scene, res, n = random_scene(), (3, 3, 2), 2
+    whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole.release()
+    monkeypatch.setattr(linespace, "LS_HASH_MASK", mask)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
+    for lo, hi in zip(offs[:-1], offs[1:]):
         assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
     built.release()
 
@@ -331,7 +354,8 @@ def test_min_candidates_keeps_hits_and_saves_memory(device, structure):
         part.release()
         assert st["ls_min_candidates"] == k
         assert st["linespace_skipped_cells"] == st["candidate_cells"] - st["linespace_cells"]
-        assert st["ls_offsets_bytes_saved"] == 4 * 240 * st["linespace_skipped_cells"]
+        # per cell: its first set and 240 16-bit shaft indices, two per word
+        assert st["ls_offsets_bytes_saved"] == 4 * (1 + 120) * st["linespace_skipped_cells"]
         if k == 4:
             assert 0 < st["linespace_cells"] < st["candidate_cells"]
             assert part.memory_bytes < full_bytes

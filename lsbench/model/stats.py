@@ -192,7 +192,7 @@ def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_t
         made += list(ls.buffers.values())
         words = linespace.read_array(device, ls.buffers, "ls_shaft_offsets")
         begin, end = linespace.shaft_ranges(words, ls.shafts_per_cell)
-        sets, set_refs = linespace.cell_set_sizes(words)
+        sets, set_refs = linespace.cell_set_sizes(words, ls.shafts_per_cell)
         return LineSpaceSample(n, cell_counts, (end - begin).reshape(len(cells), ls.shafts_per_cell),
                                cell_sets=sets, cell_set_references=set_refs)
     finally:

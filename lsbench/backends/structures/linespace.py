@@ -11,13 +11,17 @@ box (grid space, see shaders/common/grid.h) plus a range of a triangle-id list:
         references : sum of the cells' list lengths (an upper bound is fine: it only decides
                      whether the 32-bit overflow check has to run)
     ls = build_linespaces(device, scene_buffers, geometry, cells, n)
-    ls.buffers -> {"ls_shaft_offsets": CSR offsets, cells * 15 N^4 + 1 entries,
-                   "ls_shaft_tris": candidate ids}
-    ls.stats   -> shafts, non_empty_shafts, candidate_references, ...
+    ls.buffers -> {"ls_shaft_offsets": header, per-cell first sets, 16-bit shaft -> set indices,
+                   set offsets; "ls_shaft_tris": the distinct sets' candidate ids}
+    ls.stats   -> shafts, non_empty_shafts, candidate_references (all shafts' lists together),
+                  ls_sets, ls_set_references (what is stored: one list per distinct set), ...
 
-Shaft s of cell c has candidates ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. [.. + 1]];
-the traversal finds s with ls_shaft_id() of shaders/common/linespace.h (Listing 1) from the
-ray's entry and exit face and patch in cell-local coordinates.
+Shaft s of cell c has the list of its set (layout: shaders/common/linespace.h, read by trace.h's
+shaft_list; on the host by shaft_ranges / shaft_lists below): 92-95 % of a cell's non-empty
+shafts repeat another shaft's candidate set, so one list per distinct set of a cell takes about
+half the bytes of one list per shaft (docs/linespace-build.md). The traversal finds s with
+ls_shaft_id() of shaders/common/linespace.h (Listing 1) from the ray's entry and exit face and
+patch in cell-local coordinates.
 
 Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
 (2) masks: per (triangle reference, patch) the bits that decide most (shaft, triangle) pairs with
@@ -25,20 +29,24 @@ one AND (linespace.h: ls_masks_kernel), for a batch of cells at a time (LS_MASK_
 (3) count: one work item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
 driver's loop budget) decides each candidate, from the masks where they know the answer, else
 by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
-item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES); (4) exclusive scan of
-those counts in place; (5) fill: the same items write their candidates in list order (from the
-bits, or testing again where they did not fit); (6) where a cell has several chunks, the shaft
-offsets are gathered from the item offsets. docs/linespace-build.md measures each step.
+item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
+batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
+table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
+(ls_hash_kernel .. ls_shaft_set_kernel); (5) exclusive scans of the item counts, the sets per
+cell and the heads' set lengths (set offsets), then the offsets array (ls_layout_kernel) and each
+head item's destination (ls_dest_kernel); (6) fill: only the heads' items write their candidates,
+in list order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
+measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
 buffer here, varying with the host memory in use): each is then split over up to LS_MAX_CHUNKS
 buffers of a power-of-two number of entries
 (SplitArray: `ls_shaft_offsets`, `ls_shaft_offsets1`, ..., `ls_shaft_tris`, `ls_shaft_tris1`, ...;
 kernels read them through the macros of shaders/common/linespace.h), so such a case runs wherever
-the device's memory holds it. The offset array is scanned chunk by chunk with the earlier chunks'
-total added (LS_CARRY). Offsets and shaft indices are 32-bit values: a case past 2^32 - 1
-candidates or shafts (16 GiB of candidates or offsets) raises DeviceLimitError naming the limit
-(thesis 6.3 saw such cases fail), never truncates.
+the device's memory holds it; so may the build's per-shaft arrays (item offsets, set words, set
+lengths). Split arrays are scanned chunk by chunk with the earlier chunks' total added
+(LS_CARRY). Offsets and shaft indices are 32-bit values: a case past 2^32 - 1 candidates or
+shafts raises DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never truncates.
 """
 from __future__ import annotations
 
@@ -92,6 +100,9 @@ LS_PAIR_BITS_BYTES = 256 * 2**20
 # Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the hashes,
 # slots and heads 8.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
+# Bits of the row hash kept (linespace.h: ls_hash_kernel); tests set fewer, so that different sets
+# collide and only the word-by-word compare tells them apart.
+LS_HASH_MASK = 0xFFFFFFFF
 # The shaft -> set index is 16 bits wide (linespace.h): a cell may hold at most 2^16 sets.
 LS_MAX_SETS_PER_CELL = 1 << 16
 
@@ -325,12 +336,13 @@ def check_n(n: int) -> int:
 
 def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
     """Stats of the K selection (ls_min_candidates) every Line Space structure records: of the
-    cells with candidates (voxels, octree leaves), how many got no Line Space, and the shaft
-    offsets they do not need (their candidates are not counted here: compare memory_bytes with
-    a K = 0 build for the whole saving)."""
+    cells with candidates (voxels, octree leaves), how many got no Line Space, and the per-cell
+    part of ls_shaft_offsets they do not need (first set + shaft indices; their sets are not
+    counted here: compare memory_bytes with a K = 0 build for the whole saving)."""
     skipped = candidate_cells - ls.stats["linespace_cells"]
+    per_cell = offset_entries(1, ls.n, 0) - offset_entries(0, ls.n, 0)
     return {"candidate_cells": candidate_cells, "linespace_skipped_cells": skipped,
-            "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell}
+            "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * per_cell}
 
 
 def candidate_chunk(device: Device) -> int:
@@ -399,9 +411,13 @@ class ListSizes:
 
 
 def offset_entries(cells: int, n: int, sets: int) -> int:
-    """Entries of ls_shaft_offsets (layout: shaders/common/linespace.h): 2 header words, cells + 1
-    first sets, (15 N^4 + 1) / 2 words of 16-bit set indices per cell, sets + 1 set offsets."""
-    return 4 + cells + cells * ((shafts_per_cell(n) + 1) // 2) + sets
+    """Entries of ls_shaft_offsets (layout: shaders/common/linespace.h): per cell its first set and
+    (15 N^4 + 1) / 2 words of 16-bit set indices, then sets + 1 set offsets."""
+    return cells * _block_words(shafts_per_cell(n)) + sets + 1
+
+
+def _block_words(per_cell: int) -> int:
+    return 1 + (per_cell + 1) // 2
 
 
 def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dict[str, int]:
@@ -510,7 +526,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, **shaft_set_bufs)
-        set_specs = (LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, shaft_sets.bind(LS_SHAFT_SET))
+        hash_spec = LS_HASH if LS_HASH_MASK == 0xFFFFFFFF else LS_HASH.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
+        set_specs = (hash_spec, LS_INSERT, LS_MIN, LS_HEADS, shaft_sets.bind(LS_SHAFT_SET))
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
@@ -645,14 +662,18 @@ def shaft_ranges(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, n
     """(begin, end) in ls_shaft_tris of every shaft of every Line Space (cell-major), decoded from
     ls_shaft_offsets as trace.h's shaft_list reads it."""
     words = np.asarray(offset_words, np.int64)
-    if len(words) < 4:  # no Line Space
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    index_start, set_start = int(words[0]), int(words[1])
-    count, half = index_start - 3, (per_cell + 1) // 2
-    packed = words[index_start:index_start + count * half].reshape(count, half)
-    local = np.stack([packed & 0xFFFF, packed >> 16], axis=-1).reshape(count, 2 * half)[:, :per_cell]
-    sets = (words[2:2 + count, None] + local).ravel() + set_start
+    blocks = _blocks(words, per_cell)
+    packed = blocks[:, 1:]
+    local = np.stack([packed & 0xFFFF, packed >> 16], axis=-1).reshape(len(blocks), -1)[:, :per_cell]
+    sets = (blocks[:, :1] + local).ravel()
     return words[sets], words[sets + 1]
+
+
+def _blocks(words: np.ndarray, per_cell: int) -> np.ndarray:
+    """The per-cell blocks (cells, 1 + (per_cell + 1) / 2) of ls_shaft_offsets."""
+    width = _block_words(per_cell)
+    cells = int(words[0]) // width if len(words) > 1 else 0  # the first block points just past the blocks
+    return words[:cells * width].reshape(cells, width)
 
 
 def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
@@ -664,11 +685,8 @@ def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tu
     return offsets, np.asarray(tris, np.int64)[where]
 
 
-def cell_set_sizes(offset_words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cell_set_sizes(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
     """(distinct sets, their triangle ids) of each Line Space, from ls_shaft_offsets."""
     words = np.asarray(offset_words, np.int64)
-    if len(words) < 4:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    count, set_start = int(words[0]) - 3, int(words[1])
-    first = words[2:3 + count]
-    return np.diff(first), np.diff(words[set_start + first])
+    first = np.append(_blocks(words, per_cell)[:, 0], len(words) - 1)  # the last offset ends the last set
+    return np.diff(first), np.diff(words[first])

@@ -15,15 +15,24 @@
 //
 // Storage: one list per distinct candidate set of a cell (issue 16: 92-95 % of a cell's non-empty
 // shafts repeat another shaft's set, docs/linespace-build.md). ls_shaft_offsets holds, for C Line
-// Spaces of S = 15 N^4 shafts, H = (S + 1) / 2 words of shaft indices each:
-//   [0]                     where the shaft indices start: 3 + C
-//   [1]                     where the set offsets start: 3 + C + C H
-//   [2 + c], c = 0..C       the first set of Line Space c (global set numbers; entry C: all sets)
-//   [[0] + c H + s / 2]     bits 16 (s & 1) .. +15: shaft s's set, counted from its cell's first
-//   [[1] + g], g = 0..sets  set g's candidates are ls_shaft_tris[[[1] + g] .. [[1] + g + 1])
-// (trace.h: shaft_list). A cell's sets number at most its S shafts, so 16 bits hold N <= 8. The
-// sets of a cell are numbered in the order of their first shaft; each lists its triangles in the
-// cell's list order, as the one-list-per-shaft layout before it did.
+// Spaces of S = 15 N^4 shafts, one block of B = 1 + (S + 1) / 2 words per Line Space, then the
+// set offsets:
+//   [c B]                   where Line Space c's first set offset is: C B + its first set
+//   [c B + 1 + s / 2]       bits 16 (s & 1) .. +15: shaft s's set, counted from its cell's first
+//   [C B + g], g = 0..sets  set g's candidates are ls_shaft_tris[[C B + g] .. [C B + g + 1])
+// so a lookup (trace.h: shaft_list) reads two words of one block and a set's two offsets. A cell's
+// sets number at most its S shafts, so 16 bits hold N <= 8. The sets of a cell are numbered in the
+// order of their first shaft; each lists its triangles in the cell's list order, as the
+// one-list-per-shaft layout before it did.
+// Both arrays may be split over up to 4 buffers each (linespace.py: SplitArray, when they pass the
+// driver's per-buffer limit). Kernels reach them only through these macros; the defaults below
+// are the one-buffer case, split kernels get generated ones (a chain of chunk compares over
+// ls_shaft_offsets, ls_shaft_offsets1, ..). A macro names its buffers only where it is used, so a
+// kernel that binds an array write-only (layout: offsets; fill: candidates) never reads it.
+//   LS_OFFSET(i), LS_OFFSET_STORE(i, v)       entry i of the shaft offsets
+//   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) candidate i
+// The build's per-shaft set words (LS_SHAFT_SET: index in the cell | LS_SET_HEAD on a set's first
+// shaft) and set lengths, scanned into the set offsets (LS_SET_LEN), are split the same way.
 #ifndef LS_OFFSET
 #define LS_OFFSET(i) V(ls_shaft_offsets)[i]
 #define LS_OFFSET_STORE(i, v) V(ls_shaft_offsets)[i] = (v)
@@ -644,6 +653,9 @@ INLINE void ls_hash_kernel(CTX_PARAM uint b) {
     uint start = ls_row_start(CTX_ARG cell, s % shafts, len);
     uint h = 2166136261u;  // FNV-1a over the row's words
     for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
+#ifdef LS_HASH_MASK
+    h &= LS_HASH_MASK;  // tests: a hash that collides, so only the word-by-word compare tells sets apart
+#endif
     V(ls_set_hash)[b] = h;
 }
 #endif
@@ -777,20 +789,17 @@ INLINE void ls_dest_kernel(CTX_PARAM uint s) {
 // ---- Build: the Line Spaces' ls_shaft_offsets (layout at the top), one entry per work item ----
 INLINE void ls_layout_kernel(CTX_PARAM uint e) {
     uint shafts = V(ls_shafts);
-    uint cells = V(ls_cell_end);
-    uint words = (shafts + 1u) / 2u;
-    uint index_start = 3u + cells;
-    uint set_start = index_start + cells * words;
+    uint block = 1u + (shafts + 1u) / 2u;
+    uint set_start = V(ls_cell_end) * block;
     uint v;
-    if (e == 0u) v = index_start;
-    else if (e == 1u) v = set_start;
-    else if (e < index_start) v = V(ls_cell_sets)[e - 2u];
-    else if (e < set_start) {
-        uint w = e - index_start;
-        uint s = (w / words) * shafts + 2u * (w % words);
+    if (e >= set_start) v = LS_SET_LEN(e - set_start);
+    else if (e % block == 0u) v = set_start + V(ls_cell_sets)[e / block];
+    else {
+        uint pair = 2u * (e % block - 1u);
+        uint s = (e / block) * shafts + pair;
         v = LS_SHAFT_SET(s) & 0xffffu;
-        if (2u * (w % words) + 1u < shafts) v |= (LS_SHAFT_SET(s + 1u) & 0xffffu) << 16u;
-    } else v = LS_SET_LEN(e - set_start);
+        if (pair + 1u < shafts) v |= (LS_SHAFT_SET(s + 1u) & 0xffffu) << 16u;
+    }
     LS_OFFSET_STORE(e, v);
 }
 #endif
