@@ -138,39 +138,33 @@ LS_FILL_FROM_BITS = KernelSpec(
      Buf("ls_item_bases", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
      Buf("ls_shaft_tris", "uint", "w")),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
+
+
+def _sets_kernel(name: str, buffers: tuple, uniforms: tuple = LS_BATCH_UNIFORMS) -> KernelSpec:
+    """A kernel of the sets' steps: linespace.h's <name>_kernel, no scene buffers."""
+    return KernelSpec(name, LS_HEADERS_NO_SCENE, f"{name}_kernel", buffers, uniforms)
+
+
+def _uints(*names: str) -> tuple:
+    """Buf(name, "uint", access) for each "name:access"."""
+    return tuple(Buf(name, "uint", access) for name, access in (item.split(":") for item in names))
+
+
 # Finding the distinct sets of a group of cells (linespace.h: ls_hash_kernel .. ls_shaft_set_kernel).
-_ROW_BUFFERS = (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_ref_bases", "uint", "r"), LS_PAIR_BITS_FILL)
-LS_HASH = KernelSpec("ls_hash", LS_HEADERS_NO_SCENE, "ls_hash_kernel",
-                     _ROW_BUFFERS + (Buf("ls_set_hash", "uint", "w"),), LS_BATCH_UNIFORMS)
-LS_INSERT = KernelSpec(
-    "ls_insert", LS_HEADERS_NO_SCENE, "ls_insert_kernel",
-    _ROW_BUFFERS + (Buf("ls_set_hash", "uint", "r"), Buf("ls_set_table", "uint", "rw"), Buf("ls_set_slot", "uint", "w")),
-    LS_BATCH_UNIFORMS)
-LS_MIN = KernelSpec("ls_min", LS_HEADERS_NO_SCENE, "ls_min_kernel",
-                    (Buf("ls_set_table", "uint", "rw"), Buf("ls_set_slot", "uint", "r")), LS_BATCH_UNIFORMS)
-LS_HEADS = KernelSpec(
-    "ls_heads", LS_HEADERS_NO_SCENE, "ls_heads_kernel",
-    (Buf("ls_set_table", "uint", "r"), Buf("ls_set_slot", "uint", "rw"), Buf("ls_set_heads", "uint", "rw"),
-     Buf("ls_cell_sets", "uint", "rw")), LS_BATCH_UNIFORMS)
-LS_SHAFT_SET = KernelSpec(
-    "ls_shaft_set", LS_HEADERS_NO_SCENE, "ls_shaft_set_kernel",
-    (Buf("ls_set_slot", "uint", "r"), Buf("ls_set_heads", "uint", "r"), Buf("ls_shaft_sets", "uint", "w")),
-    LS_BATCH_UNIFORMS)
+_ROW_BUFFERS = _uints("ls_cell_ranges:r", "ls_ref_bases:r") + (LS_PAIR_BITS_FILL,)
+LS_HASH = _sets_kernel("ls_hash", _ROW_BUFFERS + _uints("ls_set_hash:w"))
+LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_hash:r", "ls_set_table:rw", "ls_set_slot:w"))
+LS_MIN = _sets_kernel("ls_min", _uints("ls_set_table:rw", "ls_set_slot:r"))
+LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "ls_set_heads:rw", "ls_cell_sets:rw"))
+LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_shaft_sets:w"))
 # After the scans: set lengths, the offsets array, each item's destination in the sets' lists.
-LS_SET_LEN = KernelSpec(
-    "ls_set_len", LS_HEADERS_NO_SCENE, "ls_set_len_kernel",
-    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_sets", "uint", "r"),
-     Buf("ls_cell_sets", "uint", "r"), Buf("ls_set_lens", "uint", "w"), Buf("ls_stats", "uint", "rw")),
-    LS_UNIFORMS)
-LS_LAYOUT = KernelSpec(
-    "ls_layout", LS_HEADERS_NO_SCENE, "ls_layout_kernel",
-    (Buf("ls_cell_sets", "uint", "r"), Buf("ls_shaft_sets", "uint", "r"), Buf("ls_set_lens", "uint", "r"),
-     Buf("ls_shaft_offsets", "uint", "w")), LS_BATCH_UNIFORMS)
-LS_DEST = KernelSpec(
-    "ls_dest", LS_HEADERS_NO_SCENE, "ls_dest_kernel",
-    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "rw"), Buf("ls_shaft_sets", "uint", "r"),
-     Buf("ls_cell_sets", "uint", "r"), Buf("ls_set_lens", "uint", "r")), LS_UNIFORMS)
-LS_ZERO = KernelSpec("ls_zero", LS_HEADERS_NO_SCENE, "ls_zero_kernel", (Buf("ls_zero", "uint", "w"),), LS_UNIFORMS)
+LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:r", "ls_shaft_sets:r",
+                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
+LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
+                                             "ls_shaft_offsets:w"))
+LS_DEST = _sets_kernel("ls_dest", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
+                                         "ls_cell_sets:r", "ls_set_lens:r"), LS_UNIFORMS)
+LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
     (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
