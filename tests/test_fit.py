@@ -9,6 +9,7 @@ import pytest
 
 from lsbench import backends
 from lsbench.backends import BuildParams
+from lsbench.backends.structures.linespace import ListSizes
 from lsbench.inputs.scenes import load_scene
 from lsbench.model.bytes import predict_bytes
 from lsbench.model.stats import line_space_sample, voxel_counts
@@ -37,12 +38,11 @@ def test_predicted_bytes_equal_the_built_structure(device, structure, resolution
         counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
         allocated = {name: b["allocated"] for name, b in built.memory().items()}
         if backends.structure_info(structure).line_space:
-            exact = predict_bytes(device, structure, counts, n, k,
-                                  candidates=built.stats["candidate_references"])
+            exact = predict_bytes(device, structure, counts, n, k, lists=ListSizes.of(built.stats))
             sample = line_space_sample(device, bufs, scene.triangle_count, built.geometry, counts, n)
             estimate = predict_bytes(device, structure, counts, n, k, sample=sample)
             assert not estimate.exact
-            truth = built.stats["candidate_references"]
+            truth = built.stats["ls_set_references"]  # the distinct sets' ids: what ls_shaft_tris holds
             assert 0.5 * truth <= estimate.buffers["ls_shaft_tris"] / 4 <= 2 * truth
         else:
             exact = predict_bytes(device, structure, counts)

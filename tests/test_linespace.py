@@ -96,10 +96,13 @@ def segments_hit(p, q, tris) -> np.ndarray:
 
 
 def read_linespaces(built):
+    """ls_ids and the shafts' lists expanded to one per shaft (CSR offsets, candidates), decoded
+    from the shared-sets layout as the traversal reads it (linespace.shaft_lists)."""
     d = built.device
-    return (d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64),
-            d.read(built.buffers["ls_shaft_offsets"], np.uint32).astype(np.int64),
-            d.read(built.buffers["ls_shaft_tris"], np.uint32).astype(np.int64))
+    offsets, candidates = linespace.shaft_lists(linespace.read_array(d, built.buffers, "ls_shaft_offsets"),
+                                                linespace.read_array(d, built.buffers, "ls_shaft_tris"),
+                                                built.stats["shafts_per_cell"])
+    return d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64), offsets, candidates
 
 
 @pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (3, None)])
@@ -160,6 +163,7 @@ def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
     lists = voxel_lists(device, scene, res)
     ls_ids, offs, cand = read_linespaces(built)
     per_cell = 15 * n**4
+    sets, _ = linespace.cell_set_sizes(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), per_cell)
     g = built.geometry
     grid_tris = (scene.vertices[scene.faces].astype(np.float64) - np.asarray(g.origin)) / np.asarray(g.voxel_size)
     inner_total = border = 0
@@ -176,6 +180,9 @@ def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
         assert np.diff(base).sum() == got.sum(), "a triangle twice in one shaft"
         assert not (inner & ~got).any(), f"voxel {vox}: reference candidates missing {np.argwhere(inner & ~got)[:5]}"
         assert not (got & ~outer).any(), f"voxel {vox}: candidates the reference rejects {np.argwhere(got & ~outer)[:5]}"
+        # One list per distinct set: the cell stores exactly as many sets as its shafts have
+        # different candidate sets (none stored twice, no two different ones merged).
+        assert sets[ls_ids[vox]] == len(np.unique(got, axis=0)), f"voxel {vox}: sets stored twice or merged"
         inner_total += int(inner.sum())
         border += int((outer & ~inner).sum())
     assert inner_total > 100 and border <= 0.01 * inner_total, (inner_total, border)
@@ -218,6 +225,25 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     np.testing.assert_array_equal(offs, whole_lists[1])
     np.testing.assert_array_equal(ls_ids, whole_lists[0])
     for lo, hi in zip(offs[:-1], offs[1:]):  # the voxel lists may come in another order between builds
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    built.release()
+
+
+@pytest.mark.parametrize("mask", [0, 1])
+def test_sets_are_confirmed_word_by_word(device, monkeypatch, mask):
+    """The sets come from a hash of each shaft's decision bits, but equality is decided by
+    comparing the bits: with a hash of 0 or 1 bit (every set collides with others) the lists are
+    the full hash's, shaft by shaft, and the sets are laid out the same."""
+    scene, res, n = random_scene(), (3, 3, 2), 2
+    whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole.release()
+    monkeypatch.setattr(linespace, "LS_HASH_MASK", mask)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
+    for lo, hi in zip(offs[:-1], offs[1:]):
         assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
     built.release()
 
@@ -328,7 +354,8 @@ def test_min_candidates_keeps_hits_and_saves_memory(device, structure):
         part.release()
         assert st["ls_min_candidates"] == k
         assert st["linespace_skipped_cells"] == st["candidate_cells"] - st["linespace_cells"]
-        assert st["ls_offsets_bytes_saved"] == 4 * 240 * st["linespace_skipped_cells"]
+        # per cell: its first set and 240 16-bit shaft indices, two per word
+        assert st["ls_offsets_bytes_saved"] == 4 * (1 + 120) * st["linespace_skipped_cells"]
         if k == 4:
             assert 0 < st["linespace_cells"] < st["candidate_cells"]
             assert part.memory_bytes < full_bytes
@@ -380,7 +407,7 @@ def test_buffer_limit_raises_naming_it(device, monkeypatch):
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("size,limit", [(0.25, 16384), (0.25, 8192), (0.2, 6144)])  # 2, 3, 4 buffers
+@pytest.mark.parametrize("size,limit", [(0.5, 8192), (0.3, 6144), (0.5, 6144)])  # 2, 3, 4 buffers
 def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, structure, size, limit):
     """A candidate list past the per-buffer limit is split over several buffers (up to 4) and
     traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
@@ -391,7 +418,7 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     params = BuildParams(resolution=(4, 4, 4), ls_n=1)
     whole = backends.build(device, structure, scene, params)
     whole_hits = backends.trace(whole, rays)
-    candidates = whole.stats["candidate_references"]
+    candidates = whole.stats["ls_set_references"]  # the distinct sets' ids: what ls_shaft_tris holds
     whole.release()
     monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: limit))
     split = backends.build(device, structure, scene, params)
@@ -411,13 +438,15 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 16384, 3), (150, 0.2, 16384, 4)])
+@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 8192, 3), (80, 0.12, 8192, 4)])
 def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structure, n_tris, size, limit, chunks):
     """Shaft offsets past the per-buffer limit are split too (the cells the thesis could not run,
-    Sponza N=3 at 256^3, have 2.5 GiB of offsets): the chunk-wise scan with carries gives the
-    whole build's offsets entry for entry, and the split build traces exactly as the whole one.
-    Only the offsets get the small limit here, so the candidates stay one buffer."""
-    scene = random_scene(n_tris, size=size, seed=7)  # 61 or 42 cells with candidates at 4^3
+    Sponza N=3 at 256^3, had 2.5 GiB of offsets in the one-list-per-shaft layout): the split
+    build gives the whole build's offsets entry for entry and traces exactly as the whole one.
+    The build's per-shaft arrays (item offsets, set words) are split in two as well, so their
+    chunk-wise scan with carries and split macros are in the comparison; the candidates stay one
+    buffer."""
+    scene = random_scene(n_tris, size=size, seed=7)  # 42 to 61 cells with candidates at 4^3
     rays = random_rays(scene, 190)
     params = BuildParams(resolution=(4, 4, 4), ls_n=2)
     whole = backends.build(device, structure, scene, params)
@@ -426,7 +455,8 @@ def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structur
     whole.release()
     split_array = linespace.split_array
     monkeypatch.setattr(linespace, "split_array", lambda d, base, macro, entries: split_array(
-        d, base, macro, entries, limit=limit if base == "ls_shaft_offsets" else None))
+        d, base, macro, entries, limit={"ls_shaft_offsets": limit, "ls_item_offsets": 2**15,
+                                        "ls_shaft_sets": 2**15}.get(base)))
     split = backends.build(device, structure, scene, params)
     assert split.stats["ls_offset_buffers"] == chunks == -(-4 * len(whole_offsets) // limit)
     assert split.stats["ls_tri_buffers"] == 1
@@ -439,5 +469,5 @@ def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structur
     np.testing.assert_array_equal(hits.prim_ids, whole_hits.prim_ids)
     np.testing.assert_array_equal(hits.distances, whole_hits.distances)
     monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", chunks - 1)
-    with pytest.raises(DeviceLimitError, match="buffer 'ls_shaft_offsets' needs .* more than"):
+    with pytest.raises(DeviceLimitError, match="buffer 'ls_(shaft|item)_offsets' needs .* more than"):
         backends.build(device, structure, scene, params)

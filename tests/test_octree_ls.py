@@ -23,7 +23,8 @@ from lsbench.inputs.scene import Camera
 from lsbench.inputs.scenes import load_scene
 
 from conftest import scene_path
-from test_linespace import accuracy, assert_agrees_with_embree_and_plain_twin, random_rays, random_scene
+from test_linespace import (accuracy, assert_agrees_with_embree_and_plain_twin, random_rays, random_scene,
+                            read_linespaces)
 
 LS_OCTREES = {"svo-ls": "svo", "esvo-ls": "esvo"}
 SPONZA_CAMERA = Camera(eye=(1100.0, 180.0, -40.0), target=(-900.0, 420.0, 40.0), up=(0, 1, 0), fov_deg=65.0)
@@ -61,8 +62,7 @@ def test_leaf_linespaces_equal_grid_ls_voxels(device, monkeypatch, structure, n)
     ref_ids = d.read(ref.buffers["ls_ids"], np.uint32).astype(np.int64)
     non_empty = np.flatnonzero(np.diff(voxel_offsets) > 0)
     assert (np.diff(ref_ids)[non_empty] == 1).all()  # K = 0: every non-empty voxel has one
-    ref_rows = shaft_triples(non_empty, d.read(ref.buffers["ls_shaft_offsets"], np.uint32).astype(np.int64),
-                             d.read(ref.buffers["ls_shaft_tris"], np.uint32).astype(np.int64), shafts)
+    ref_rows = shaft_triples(non_empty, *read_linespaces(ref)[1:], shafts)
 
     # Leaves come in Morton order of the non-empty voxels; each has a Line Space, its own.
     x, y, z = non_empty % res, (non_empty // res) % res, non_empty // (res * res)
@@ -74,8 +74,7 @@ def test_leaf_linespaces_equal_grid_ls_voxels(device, monkeypatch, structure, n)
     assert (counts == np.diff(voxel_offsets)[leaf_voxels]).all()
     ls_ids = d.read(oct_.buffers["ls_ids"], np.uint32).astype(np.int64)
     assert (ls_ids == np.arange(len(leaf_voxels) + 1)).all()
-    rows = shaft_triples(leaf_voxels, d.read(oct_.buffers["ls_shaft_offsets"], np.uint32).astype(np.int64),
-                         d.read(oct_.buffers["ls_shaft_tris"], np.uint32).astype(np.int64), shafts)
+    rows = shaft_triples(leaf_voxels, *read_linespaces(oct_)[1:], shafts)
     assert st["candidate_references"] == len(rows) == ref.stats["candidate_references"]
     np.testing.assert_array_equal(rows, ref_rows)
     ref.release()

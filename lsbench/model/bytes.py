@@ -3,9 +3,12 @@ through each recipe's own predicted_bytes (backends/structures/*: the layout is 
 beside the code that allocates it).
 
 Exact (equal to Built.memory_bytes, tests/test_fit.py): grid, svo, esvo from the count pass, and
-every buffer of the Line Space structures except the shaft candidates. Those (ls_shaft_tris) are an
-estimate before the build: the candidates per reference of a sample of cells (stats.LineSpaceSample)
-times the references of the cells that get a Line Space; `exact` says which the prediction is.
+every buffer of the Line Space structures except what their distinct candidate sets take (one list
+per distinct set of a cell, linespace.h): the sets' offsets (in ls_shaft_offsets, beside the exact
+per-cell part) and their triangle ids (ls_shaft_tris). Before the build those are estimates: the
+sets and set ids per reference of a sample of cells (stats.LineSpaceSample) times the references of
+the cells that get a Line Space; given the build's counts (linespace.ListSizes.of(stats)) they are
+exact. `exact` says which the prediction is.
 """
 from __future__ import annotations
 
@@ -13,6 +16,7 @@ from dataclasses import dataclass
 
 from lsbench.backends.device import Device
 from lsbench.backends.structures import STRUCTURES, grid, grid_ls, svo
+from lsbench.backends.structures.linespace import ListSizes
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
 
 
@@ -27,10 +31,10 @@ class BytesPrediction:
 
 
 def predict_bytes(device: Device, structure: str, counts: VoxelCounts, n: int = 0, k: int = 0,
-                  sample: LineSpaceSample | None = None, candidates: int | None = None) -> BytesPrediction:
+                  sample: LineSpaceSample | None = None, lists: ListSizes | None = None) -> BytesPrediction:
     """Bytes of `structure` built over counts.geometry (with N = n, K = k for a Line Space
-    structure). The shaft candidates: `candidates` when known (then the prediction is exact),
-    else estimated from `sample`."""
+    structure). The distinct sets: `lists` when known (then the prediction is exact), else
+    estimated from `sample`."""
     info = STRUCTURES[structure]
     octree = info.cubic_power_of_two
     if octree:
@@ -41,14 +45,15 @@ def predict_bytes(device: Device, structure: str, counts: VoxelCounts, n: int = 
             return BytesPrediction(svo.predicted_bytes(structure, nodes, leaves, counts.references), True)
         return BytesPrediction(grid.predicted_bytes(counts.voxels, counts.references), True)
     ls_cells, ls_refs = counts.above(k)
-    exact = candidates is not None
+    exact = lists is not None
     if not exact:
         if sample is None:
-            raise ValueError(f"{structure}: a Line Space prediction needs a sample or the candidate count")
-        candidates = round(sample.candidates_per_reference(k) * ls_refs)
+            raise ValueError(f"{structure}: a Line Space prediction needs a sample or the built sets' sizes")
+        sets, set_refs = sample.lists_per_reference(k)
+        lists = ListSizes(round(sets * ls_refs), round(set_refs * ls_refs))
     if octree:
-        buffers = info.recipe.predicted_bytes(device, nodes, leaves, counts.references, ls_cells, n, candidates)
+        buffers = info.recipe.predicted_bytes(device, nodes, leaves, counts.references, ls_cells, n, lists)
     else:
         buffers = grid_ls.predicted_bytes(device, counts.voxels, counts.references, counts.non_empty,
-                                          ls_cells, n, candidates)
+                                          ls_cells, n, lists)
     return BytesPrediction(buffers, exact)

@@ -32,7 +32,7 @@ import numpy as np
 
 from lsbench.backends.structures import STRUCTURES
 from lsbench.backends.structures.base import GridGeometry
-from lsbench.backends.structures.linespace import shafts_per_cell
+from lsbench.backends.structures.linespace import ListSizes, offset_entries, shafts_per_cell
 from lsbench.model.bytes import BytesPrediction, predict_bytes
 from lsbench.model.constants import family, load_constants
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
@@ -293,7 +293,7 @@ class Choice:
         exact = c.bytes.total
         if STRUCTURES[self.structure].line_space and self.chosen_counts is not None:
             exact = predict_bytes(device, self.structure, self.chosen_counts, c.ls_n, c.ls_min_candidates,
-                                  candidates=int(built.stats.get("candidate_references", 0))).total
+                                  lists=ListSizes.of(built.stats)).total
         return {"memory_bytes": c.bytes.total, "memory_bytes_exact": c.bytes.exact,
                 "memory_bytes_once_built": exact, "rays_per_second": _rate(c.seconds_per_ray),
                 "iterations_per_ray": c.work.iterations, "candidate_tests_per_ray": c.work.tests,
@@ -377,7 +377,8 @@ def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):
 
 
 def _offsets_bytes(counts: VoxelCounts, n: int, k: int) -> int:
-    return 4 * counts.above(k)[0] * shafts_per_cell(n)
+    """The Line Spaces' per-cell part of ls_shaft_offsets (a lower bound of their bytes)."""
+    return 4 * offset_entries(counts.above(k)[0], n, 0)
 
 
 def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, constants) -> Option:
@@ -393,7 +394,7 @@ def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, cons
         return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), False)
     try:
         b = predict_bytes(device, structure, counts, n, k, sample=None if no_cells else ls,
-                          candidates=0 if no_cells else None)
+                          lists=ListSizes(0, 0) if no_cells else None)
         over_device = False
     except DeviceLimitError:  # more buffers than the driver allows: never fits
         b, over_device = BytesPrediction({}, False), True
@@ -422,5 +423,5 @@ def bytes_at_least(device, structure: str, scene, params) -> tuple[int, bool]:
         for b in bufs.values():
             device.release(b)
     n = (params.ls_n or 1) if info.line_space else 0
-    return predict_bytes(device, structure, counts, n, params.ls_min_candidates, candidates=0).total, \
+    return predict_bytes(device, structure, counts, n, params.ls_min_candidates, lists=ListSizes(0, 0)).total, \
         not info.line_space

@@ -100,11 +100,23 @@ class LineSpaceSample:
     cell_counts: np.ndarray  # int64: each sampled cell's candidates (its voxel list length)
     shaft_candidates: np.ndarray  # int64 (cells, 15 N^4): each sampled cell's candidates per shaft
     limit: str = ""  # the device limit the sample's build met (that N cannot be built here), else ""
+    # Each sampled cell's distinct candidate sets and their triangle ids (what its lists store).
+    cell_sets: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    cell_set_references: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def cell_candidates(self) -> np.ndarray:
         """The candidates of all of each sampled cell's shafts together."""
         return self.shaft_candidates.sum(axis=1)
+
+    def lists_per_reference(self, k: int) -> tuple[float, float]:
+        """Distinct sets and their triangle ids per voxel reference in the sampled cells with more
+        than k candidates (ratio estimators, as candidates_per_reference); (0, 0) when none is sampled."""
+        keep = self.cell_counts > k
+        refs = int(self.cell_counts[keep].sum())
+        if not refs:
+            return 0.0, 0.0
+        return float(self.cell_sets[keep].sum()) / refs, float(self.cell_set_references[keep].sum()) / refs
 
     def candidates_per_reference(self, k: int) -> float:
         """Shaft candidates per voxel reference in the sampled cells with more than k candidates
@@ -178,10 +190,11 @@ def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_t
         sample = linespace.Cells(len(cells), made[0], made[1], voxel_tris, int(cell_counts.sum()))
         ls = linespace.build_linespaces(device, scene_buffers, geometry, sample, n)
         made += list(ls.buffers.values())
-        names = sorted((k for k in ls.buffers if k.startswith("ls_shaft_offsets")), key=lambda k: (len(k), k))
-        shaft_offsets = np.concatenate([device.read(ls.buffers[k], np.uint32) for k in names]).astype(np.int64)
-        per_shaft = np.diff(shaft_offsets[: len(cells) * ls.shafts_per_cell + 1])
-        return LineSpaceSample(n, cell_counts, per_shaft.reshape(len(cells), ls.shafts_per_cell))
+        words = linespace.read_array(device, ls.buffers, "ls_shaft_offsets")
+        begin, end = linespace.shaft_ranges(words, ls.shafts_per_cell)
+        sets, set_refs = linespace.cell_set_sizes(words, ls.shafts_per_cell)
+        return LineSpaceSample(n, cell_counts, (end - begin).reshape(len(cells), ls.shafts_per_cell),
+                               cell_sets=sets, cell_set_references=set_refs)
     finally:
         for b in made:
             device.release(b)

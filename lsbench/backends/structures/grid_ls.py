@@ -83,15 +83,15 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
 
 
 def predicted_bytes(device: Device, voxels: int, references: int, non_empty: int, ls_cells: int,
-                    n: int, candidates: int) -> dict[str, int]:
+                    n: int, lists: linespace.ListSizes) -> dict[str, int]:
     """The bytes of each buffer build returns (lsbench/model/bytes.py): the grid's lists (the
     plain list shrinks to 4 bytes when every non-empty voxel has a Line Space), the voxel -> Line
-    Space index, and the Line Spaces of `ls_cells` voxels holding `candidates` in all."""
+    Space index, and the Line Spaces of `ls_cells` voxels whose distinct sets are `lists`."""
     out = grid.predicted_bytes(voxels, references)
     if ls_cells == non_empty:
         out["voxel_tris"] = 4
     out["ls_ids"] = 4 * (voxels + 1)
-    out.update(linespace.predicted_bytes(device, ls_cells, n, candidates))
+    out.update(linespace.predicted_bytes(device, ls_cells, n, lists))
     return out
 
 

@@ -11,13 +11,17 @@ box (grid space, see shaders/common/grid.h) plus a range of a triangle-id list:
         references : sum of the cells' list lengths (an upper bound is fine: it only decides
                      whether the 32-bit overflow check has to run)
     ls = build_linespaces(device, scene_buffers, geometry, cells, n)
-    ls.buffers -> {"ls_shaft_offsets": CSR offsets, cells * 15 N^4 + 1 entries,
-                   "ls_shaft_tris": candidate ids}
-    ls.stats   -> shafts, non_empty_shafts, candidate_references, ...
+    ls.buffers -> {"ls_shaft_offsets": header, per-cell first sets, 16-bit shaft -> set indices,
+                   set offsets; "ls_shaft_tris": the distinct sets' candidate ids}
+    ls.stats   -> shafts, non_empty_shafts, candidate_references (all shafts' lists together),
+                  ls_sets, ls_set_references (what is stored: one list per distinct set), ...
 
-Shaft s of cell c has candidates ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. [.. + 1]];
-the traversal finds s with ls_shaft_id() of shaders/common/linespace.h (Listing 1) from the
-ray's entry and exit face and patch in cell-local coordinates.
+Shaft s of cell c has the list of its set (layout: shaders/common/linespace.h, read by trace.h's
+shaft_list; on the host by shaft_ranges / shaft_lists below): 92-95 % of a cell's non-empty
+shafts repeat another shaft's candidate set, so one list per distinct set of a cell takes about
+half the bytes of one list per shaft (docs/linespace-build.md). The traversal finds s with
+ls_shaft_id() of shaders/common/linespace.h (Listing 1) from the ray's entry and exit face and
+patch in cell-local coordinates.
 
 Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
 (2) masks: per (triangle reference, patch) the bits that decide most (shaft, triangle) pairs with
@@ -25,20 +29,24 @@ one AND (linespace.h: ls_masks_kernel), for a batch of cells at a time (LS_MASK_
 (3) count: one work item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
 driver's loop budget) decides each candidate, from the masks where they know the answer, else
 by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
-item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES); (4) exclusive scan of
-those counts in place; (5) fill: the same items write their candidates in list order (from the
-bits, or testing again where they did not fit); (6) where a cell has several chunks, the shaft
-offsets are gathered from the item offsets. docs/linespace-build.md measures each step.
+item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
+batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
+table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
+(ls_hash_kernel .. ls_shaft_set_kernel); (5) exclusive scans of the item counts, the sets per
+cell and the heads' set lengths (set offsets), then the offsets array (ls_layout_kernel) and each
+head item's destination (ls_dest_kernel); (6) fill: only the heads' items write their candidates,
+in list order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
+measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
 buffer here, varying with the host memory in use): each is then split over up to LS_MAX_CHUNKS
 buffers of a power-of-two number of entries
 (SplitArray: `ls_shaft_offsets`, `ls_shaft_offsets1`, ..., `ls_shaft_tris`, `ls_shaft_tris1`, ...;
 kernels read them through the macros of shaders/common/linespace.h), so such a case runs wherever
-the device's memory holds it. The offset array is scanned chunk by chunk with the earlier chunks'
-total added (LS_CARRY). Offsets and shaft indices are 32-bit values: a case past 2^32 - 1
-candidates or shafts (16 GiB of candidates or offsets) raises DeviceLimitError naming the limit
-(thesis 6.3 saw such cases fail), never truncates.
+the device's memory holds it; so may the build's per-shaft arrays (item offsets, set words, set
+lengths). Split arrays are scanned chunk by chunk with the earlier chunks' total added
+(LS_CARRY). Offsets and shaft indices are 32-bit values: a case past 2^32 - 1 candidates or
+shafts raises DeviceLimitError naming the limit (thesis 6.3 saw such cases fail), never truncates.
 """
 from __future__ import annotations
 
@@ -65,7 +73,7 @@ LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "ui
 # The build's batch of cells (linespace.h: ls_shaft_kernel, ls_masks_kernel).
 LS_BATCH_UNIFORMS = LS_UNIFORMS + (Uniform("ls_chunk", "uint"), Uniform("ls_item_base", "uint"),
                                    Uniform("ls_ref_base", "uint"), Uniform("ls_cell_first", "uint"),
-                                   Uniform("ls_cell_end", "uint"))
+                                   Uniform("ls_cell_end", "uint"), Uniform("ls_bits_base", "uint"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
@@ -85,9 +93,18 @@ LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16}
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
-# Most bytes the count's decisions (one bit per shaft and candidate) may take to spare the fill
-# the tests; a larger case tests every pair again in the fill.
+# Most bytes the count's decisions (one bit per shaft and candidate) may take. The sets are found
+# from them; where those of all cells do not fit, the cells go in batches whose bits do, each
+# batch's sets are found while its bits are there, and the fill tests the pairs again.
 LS_PAIR_BITS_BYTES = 256 * 2**20
+# Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the hashes,
+# slots and heads 8.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
+LS_GROUP_SHAFTS = 1 << 22
+# Bits of the row hash kept (linespace.h: ls_hash_kernel); tests set fewer, so that different sets
+# collide and only the word-by-word compare tells them apart.
+LS_HASH_MASK = 0xFFFFFFFF
+# The shaft -> set index is 16 bits wide (linespace.h): a cell may hold at most 2^16 sets.
+LS_MAX_SETS_PER_CELL = 1 << 16
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
@@ -121,13 +138,33 @@ LS_FILL_FROM_BITS = KernelSpec(
      Buf("ls_item_bases", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
      Buf("ls_shaft_tris", "uint", "w")),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
-LS_GATHER = KernelSpec(
-    "ls_gather", LS_HEADERS_NO_SCENE, "ls_gather_kernel",
-    (Buf("ls_item_bases", "uint", "r"), Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_offsets", "uint", "w")),
-    LS_BATCH_UNIFORMS)
-LS_NONEMPTY = KernelSpec(
-    "ls_nonempty", LS_HEADERS_NO_SCENE, "ls_nonempty_kernel",
-    (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_stats", "uint", "rw")), LS_UNIFORMS)
+
+
+def _sets_kernel(name: str, buffers: tuple, uniforms: tuple = LS_BATCH_UNIFORMS) -> KernelSpec:
+    """A kernel of the sets' steps: linespace.h's <name>_kernel, no scene buffers."""
+    return KernelSpec(name, LS_HEADERS_NO_SCENE, f"{name}_kernel", buffers, uniforms)
+
+
+def _uints(*names: str) -> tuple:
+    """Buf(name, "uint", access) for each "name:access"."""
+    return tuple(Buf(name, "uint", access) for name, access in (item.split(":") for item in names))
+
+
+# Finding the distinct sets of a group of cells (linespace.h: ls_hash_kernel .. ls_shaft_set_kernel).
+_ROW_BUFFERS = _uints("ls_cell_ranges:r", "ls_ref_bases:r") + (LS_PAIR_BITS_FILL,)
+LS_HASH = _sets_kernel("ls_hash", _ROW_BUFFERS + _uints("ls_set_hash:w"))
+LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_hash:r", "ls_set_table:rw", "ls_set_slot:w"))
+LS_MIN = _sets_kernel("ls_min", _uints("ls_set_table:rw", "ls_set_slot:r"))
+LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "ls_set_heads:rw", "ls_cell_sets:rw"))
+LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_shaft_sets:w"))
+# After the scans: set lengths, the offsets array, each item's destination in the sets' lists.
+LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:r", "ls_shaft_sets:r",
+                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
+LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
+                                             "ls_shaft_offsets:w"))
+LS_DEST = _sets_kernel("ls_dest", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
+                                         "ls_cell_sets:r", "ls_set_lens:r"), LS_UNIFORMS)
+LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
 LS_CHECK = KernelSpec(
     "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
     (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
@@ -136,7 +173,8 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_GATHER, LS_NONEMPTY, LS_CHECK, LS_CARRY)
+BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_SHAFT_SET,
+               LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
@@ -261,12 +299,12 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
     return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
 
 
-def _count_fill_specs(device: Device, pair_bits: bool) -> tuple[KernelSpec, KernelSpec]:
-    count, fill = _with_test(device, LS_COUNT), _with_test(device, LS_FILL)
-    if not pair_bits:
-        return count, fill
-    return (dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1),
-            LS_FILL_FROM_BITS)
+def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec, KernelSpec]:
+    """The count (always keeping its decisions as pair bits: the sets are found from them) and
+    the fill: from the bits where those of all cells fit, else testing the pairs again."""
+    count = _with_test(device, LS_COUNT)
+    count = dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
+    return count, (LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL))
 
 
 def prepare(device: Device) -> None:
@@ -292,12 +330,13 @@ def check_n(n: int) -> int:
 
 def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
     """Stats of the K selection (ls_min_candidates) every Line Space structure records: of the
-    cells with candidates (voxels, octree leaves), how many got no Line Space, and the shaft
-    offsets they do not need (their candidates are not counted here: compare memory_bytes with
-    a K = 0 build for the whole saving)."""
+    cells with candidates (voxels, octree leaves), how many got no Line Space, and the per-cell
+    part of ls_shaft_offsets they do not need (first set + shaft indices; their sets are not
+    counted here: compare memory_bytes with a K = 0 build for the whole saving)."""
     skipped = candidate_cells - ls.stats["linespace_cells"]
+    per_cell = offset_entries(1, ls.n, 0) - offset_entries(0, ls.n, 0)
     return {"candidate_cells": candidate_cells, "linespace_skipped_cells": skipped,
-            "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * ls.shafts_per_cell}
+            "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * per_cell}
 
 
 def candidate_chunk(device: Device) -> int:
@@ -327,13 +366,16 @@ class BuildPlan:
 
 
 def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
-               mask_bytes: int = LS_MASK_BYTES) -> BuildPlan:
-    """ranges: (cells, 2) begin, end of each cell's list."""
+               mask_bytes: int = LS_MASK_BYTES, bits_bytes: int | None = None) -> BuildPlan:
+    """ranges: (cells, 2) begin, end of each cell's list. bits_bytes: where given, a batch's pair
+    bits (one per shaft and reference) fit it too."""
     lengths = (ranges[:, 1].astype(np.int64) - ranges[:, 0]).clip(min=0)
     chunks = np.maximum(1, -(-lengths // chunk))
     item_bases = np.concatenate([[0], np.cumsum(per_cell * chunks)])
     ref_bases = np.concatenate([[0], np.cumsum(lengths)])
     max_refs = max(1, mask_bytes // (4 * patches))
+    if bits_bytes is not None:
+        max_refs = max(1, min(max_refs, 8 * bits_bytes // per_cell))
     batches, c0, cells = [], 0, len(lengths)
     while c0 < cells:
         c1 = int(np.searchsorted(ref_bases, ref_bases[c0] + max_refs, side="right")) - 1
@@ -350,34 +392,61 @@ def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro:
     return other, {new: bufs[old] for old, new in zip(split.names, other.names)}
 
 
-def predicted_bytes(device: Device, cells: int, n: int, candidates: int) -> dict[str, int]:
-    """The bytes of each buffer build_linespaces returns for `cells` Line Spaces of N = n holding
-    `candidates` shaft candidates in all (lsbench/model/bytes.py): exact given `candidates`, which
-    a model estimates from a sample of cells before the build. Split arrays as split_array
-    splits them (DeviceLimitError where they would need more buffers than LS_MAX_CHUNKS)."""
-    n_shafts = cells * shafts_per_cell(n)
-    if n_shafts == 0:
+@dataclass(frozen=True)
+class ListSizes:
+    """What the lists of a set of Line Spaces hold besides their fixed per-cell part: the distinct
+    candidate sets of all cells together and the triangle ids of those sets."""
+    sets: int
+    references: int
+
+    @classmethod
+    def of(cls, stats: dict) -> "ListSizes":
+        return cls(int(stats.get("ls_sets", 0)), int(stats.get("ls_set_references", 0)))
+
+
+def offset_entries(cells: int, n: int, sets: int) -> int:
+    """Entries of ls_shaft_offsets (layout: shaders/common/linespace.h): per cell its first set and
+    (15 N^4 + 1) / 2 words of 16-bit set indices, then sets + 1 set offsets."""
+    return cells * _block_words(shafts_per_cell(n)) + sets + 1
+
+
+def _block_words(per_cell: int) -> int:
+    return 1 + (per_cell + 1) // 2
+
+
+def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dict[str, int]:
+    """The bytes of each buffer build_linespaces returns for `cells` Line Spaces of N = n whose
+    distinct sets are `lists` (lsbench/model/bytes.py): exact given `lists`, which a model
+    estimates from a sample of cells before the build. Split arrays as split_array splits them
+    (DeviceLimitError where they would need more buffers than LS_MAX_CHUNKS)."""
+    if cells * shafts_per_cell(n) == 0:
         return {"ls_shaft_offsets": 4, "ls_shaft_tris": 4}
     out = {}
-    for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1),
-                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidates)):
+    for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells, n, lists.sets)),
+                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", lists.references)):
         out.update({name: max(4 * array.chunk_entries(i), 4) for i, name in enumerate(array.names)})
     return out
 
 
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
                      n: int) -> LineSpaces:
-    """Line Spaces of all cells: cull masks -> count -> scan -> fill, all on the device, in batches
-    of cells (their masks) and chunks of candidates (the driver's loop budget)."""
+    """Line Spaces of all cells: cull masks -> count (with pair bits) -> the distinct sets of each
+    cell -> scans -> fill of each set's list, all on the device, in batches of cells (their masks
+    and bits), groups of cells (the sets' hash tables) and chunks of candidates (the driver's loop
+    budget)."""
     n = check_n(n)
     per_cell = shafts_per_cell(n)
     patches = 6 * n * n
     n_shafts = cells.count * per_cell
+    if per_cell > LS_MAX_SETS_PER_CELL:
+        raise DeviceLimitError(f"N={n}: {per_cell} shafts per cell may hold more distinct sets than "
+                               f"the 16-bit set indices ({LS_MAX_SETS_PER_CELL}) number")
     # The limits in the order a bigger device would meet them: buffers per array, device memory,
     # then the 32-bit indices (which no device with less than 16 GiB for the offsets reaches).
-    # Checked before the long count pass.
-    offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", n_shafts + 1)
-    device.check_memory("ls_shaft_offsets", 4 * (n_shafts + 1))
+    # Checked (for the offsets' fixed part) before the long count pass.
+    fixed_entries = offset_entries(cells.count, n, 0)
+    split_array(device, "ls_shaft_offsets", "LS_OFFSET", fixed_entries)
+    device.check_memory("ls_shaft_offsets", 4 * fixed_entries)
     if n_shafts + 1 > UINT32_MAX:
         raise DeviceLimitError(
             f"{cells.count} Line Spaces x {per_cell} shafts = {n_shafts} shafts overflow 32-bit "
@@ -388,89 +457,143 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         no_tris = device.alloc("ls_shaft_tris", 4)
         no_tris.used_bytes = 0
         stats = {"ls_n": n, "shafts_per_cell": per_cell, "linespace_cells": 0, "shafts": 0,
-                 "non_empty_shafts": 0, "candidate_references": 0, "ls_bytes": 8,
-                 "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
+                 "non_empty_shafts": 0, "candidate_references": 0, "ls_sets": 0, "ls_set_references": 0,
+                 "ls_bytes": 8, "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
                  "ls_candidate_chunk": candidate_chunk(device), "ls_work_items": 0, "ls_cell_batches": 0,
                  "ls_pair_bits": False}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
     ranges = device.read(cells.ranges, np.uint32, 2 * cells.count).reshape(-1, 2)
-    plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), min(LS_MASK_BYTES, device.max_buffer_bytes))
+    mask_bytes = min(LS_MASK_BYTES, device.max_buffer_bytes)
+    plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), mask_bytes)
     if plan.items + 1 > UINT32_MAX:
         raise DeviceLimitError(
             f"{plan.items} count/fill work items (shafts x chunks of {plan.chunk} candidates) overflow "
             "32-bit item indices (uint, 2^32 - 1)")
-    chunked = plan.items != n_shafts
+    # The pair bits of all cells where they fit (the fill then reads them), else of one batch.
+    bits_limit = min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
+    pairs = int(plan.ref_bases[-1]) * per_cell
+    all_bits = pairs < UINT32_MAX and 4 * (-(-pairs // 32)) <= bits_limit
+    if all_bits:
+        try:
+            device.check_memory("ls_pair_bits", 4 * (-(-pairs // 32)))
+        except DeviceLimitError:
+            all_bits = False
+    if not all_bits:
+        plan = plan_build(ranges, per_cell, patches, plan.chunk, mask_bytes, bits_limit)
+        pairs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches) * per_cell
+    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell, device.max_buffer_bytes // (8 * per_cell)))
+    group_shafts = group_cells * per_cell
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
+
+    def temp(name: str, nbytes: int, zero: bool = True) -> DeviceBuffer:
+        temps.append(device.alloc(name, max(int(nbytes), 4), zero=zero))
+        return temps[-1]
+
+    def zero(buf: DeviceBuffer, words: int) -> None:
+        device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
+
     try:
-        planes = device.alloc("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
-        temps.append(planes)
+        planes = temp("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
-        stats_buf = device.alloc("ls_stats", 16)
-        temps.append(stats_buf)
-        for name, values in (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)):
-            temps.append(device.upload(name, values.astype(np.uint32)))
+        stats_buf = temp("ls_stats", 16)
+        item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
+                                 (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
+        temps.extend((item_bases, ref_bases))
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
-        masks = device.alloc("ls_masks", 4 * max(most_refs * patches, 1), zero=False)
-        temps.append(masks)
+        masks = temp("ls_masks", 4 * most_refs * patches, zero=False)
+        bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
-                         ls_cell_tris=cells.tris, ls_item_bases=temps[-3], ls_ref_bases=temps[-2], ls_masks=masks)
-        offset_bufs = offsets.alloc(device, zero=True)  # entry n_shafts stays 0: it becomes the total
-        kept.extend(offset_bufs.values())
-        if chunked:  # one entry per (shaft, chunk), gathered into the shaft offsets after the fill
-            items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
-            device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
-            item_bufs = items.alloc(device, zero=True)
-            temps.extend(item_bufs.values())
-        else:  # the items are the shafts: count and scan in the offsets themselves
-            items, item_bufs = _renamed(offsets, offset_bufs, "ls_item_offsets", "LS_ITEM")
+                         ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
+                         ls_pair_bits=bits)
+        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
+        device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
+        item_bufs = items.alloc(device, zero=True)  # entry `items` stays 0: it becomes the total
+        temps.extend(item_bufs.values())
+        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", n_shafts)
+        shaft_set_bufs = shaft_sets.alloc(device, zero=False)
+        temps.extend(shaft_set_bufs.values())
+        cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
+        group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, ls_pair_bits=bits,
+                          ls_set_hash=temp("ls_set_hash", 4 * group_shafts, zero=False),
+                          ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
+                          ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
+                          ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
+                          ls_cell_sets=cell_sets, **shaft_set_bufs)
+        hash_spec = LS_HASH if LS_HASH_MASK == 0xFFFFFFFF else LS_HASH.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
+        set_specs = (hash_spec, LS_INSERT, LS_MIN, LS_HEADS, shaft_sets.bind(LS_SHAFT_SET))
 
-        def batch_uniforms(c0: int, c1: int) -> dict:
+        def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
-                        ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1)
+                        ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
+                        ls_bits_base=bits_base)
 
-        def run_pass(spec: KernelSpec, bufs: dict, masks_ready: bool) -> None:
-            for c0, c1 in plan.batches:
-                bu = batch_uniforms(c0, c1)
-                if not masks_ready:
-                    device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
-                device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]), bufs, bu)
+        def find_sets(c0: int, c1: int, bits_base: int) -> None:
+            for g0 in range(c0, c1, group_cells):
+                g1 = min(g0 + group_cells, c1)
+                shafts = (g1 - g0) * per_cell
+                zero(group_bufs["ls_set_table"], 2 * shafts)
+                zero(group_bufs["ls_set_heads"], -(-shafts // 32))
+                for spec in set_specs:
+                    device.dispatch(spec, shafts, group_bufs, batch_uniforms(g0, g1, bits_base))
 
-        pairs = int(plan.ref_bases[-1]) * per_cell
-        bits_bytes = 4 * (-(-pairs // 32))
-        keep_bits = pairs < UINT32_MAX and bits_bytes <= min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
-        if keep_bits:
-            try:
-                device.check_memory("ls_pair_bits", bits_bytes)
-            except DeviceLimitError:
-                keep_bits = False  # the fill tests every pair again instead
-        count_spec, fill_spec = _count_fill_specs(device, keep_bits)
-        if keep_bits:
-            cell_bufs["ls_pair_bits"] = device.alloc("ls_pair_bits", max(bits_bytes, 4), zero=True)
-            temps.append(cell_bufs["ls_pair_bits"])
-        run_pass(items.bind(count_spec), dict(cell_bufs, ls_stats=stats_buf, **item_bufs), False)
+        count_spec, fill_spec = _count_fill_specs(device, all_bits)
+        count = items.bind(count_spec)
+        for c0, c1 in plan.batches:
+            bits_base = 0 if all_bits else int(plan.ref_bases[c0])
+            bu = batch_uniforms(c0, c1, bits_base)
+            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+            if not all_bits:
+                zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
+            device.dispatch(count, int(plan.item_bases[c1] - plan.item_bases[c0]),
+                            dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
+            if not all_bits:  # this batch's sets, while its bits are there
+                find_sets(c0, c1, bits_base)
+        if all_bits:
+            find_sets(0, cells.count, 0)
         total = _scan_split(device, items, item_bufs, u)
         # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
-        # for the wrap (a decreasing offset) on the device before trusting `total`.
+        # for the wrap (a decreasing offset) on the device before trusting `total`. The sets'
+        # lists hold no more than all shafts' lists.
         if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
-            flag = device.alloc("ls_check_flag", 4)
-            temps.append(flag)
+            flag = temp("ls_check_flag", 4)
             check, check_bufs = _renamed(items, item_bufs, "ls_shaft_offsets", "LS_OFFSET")
             device.dispatch(check.bind(LS_CHECK), plan.items, dict(check_bufs, ls_check_flag=flag), u)
             if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
                 raise DeviceLimitError(
                     f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
                     "references: over the 32-bit candidate offsets")
-        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", total)
+        n_sets = device.scan_in_place(cell_sets, cells.count + 1)
+        set_lens = split_array(device, "ls_set_lens", "LS_SET_LEN", n_sets + 1)
+        set_len_bufs = set_lens.alloc(device, zero=True)
+        temps.extend(set_len_bufs.values())
+        sets_bufs = dict(ls_item_bases=item_bases, ls_cell_sets=cell_sets, ls_stats=stats_buf,
+                         **item_bufs, **shaft_set_bufs, **set_len_bufs)
+
+        def bound(spec: KernelSpec) -> KernelSpec:
+            return set_lens.bind(shaft_sets.bind(items.bind(spec)))
+
+        device.dispatch(bound(LS_SET_LEN), n_shafts, sets_bufs, u)
+        set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
+        offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells.count, n, n_sets))
+        device.check_memory("ls_shaft_offsets", 4 * offsets.entries)
+        offset_bufs = offsets.alloc(device, zero=False)
+        kept.extend(offset_bufs.values())
+        device.dispatch(offsets.bind(bound(LS_LAYOUT)), offsets.entries, dict(sets_bufs, **offset_bufs),
+                        batch_uniforms(0, cells.count))
+        device.dispatch(bound(LS_DEST), n_shafts, sets_bufs, u)
+        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", set_refs)
+        device.check_memory("ls_shaft_tris", 4 * candidates.entries)
         tris_bufs = candidates.alloc(device, zero=False)
         kept.extend(tris_bufs.values())
         fill = candidates.bind(items.bind(fill_spec))
-        run_pass(fill, dict(cell_bufs, **item_bufs, **tris_bufs), keep_bits or len(plan.batches) == 1)
-        if chunked:
-            gather = offsets.bind(items.bind(LS_GATHER))
-            device.dispatch(gather, n_shafts + 1, dict(item_bufs, ls_item_bases=cell_bufs["ls_item_bases"],
-                                                       **offset_bufs), batch_uniforms(0, cells.count))
-        device.dispatch(offsets.bind(LS_NONEMPTY), n_shafts, dict(offset_bufs, ls_stats=stats_buf), u)
+        fill_bufs = dict(cell_bufs, **item_bufs, **tris_bufs)
+        masks_ready = all_bits or len(plan.batches) == 1
+        for c0, c1 in plan.batches:
+            bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
+            if not masks_ready:
+                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+            device.dispatch(fill, int(plan.item_bases[c1] - plan.item_bases[c0]), fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
@@ -483,7 +606,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for b in temps:
             device.release(b)
     device.finish()
-    if total == 0:  # the buffers are sized exactly, except the 4-byte stand-in for an empty list
+    if set_refs == 0:  # the buffers are sized exactly, except the 4-byte stand-in for an empty list
         tris_bufs["ls_shaft_tris"].used_bytes = 0
     stats = {
         "ls_n": n,
@@ -491,7 +614,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "linespace_cells": cells.count,
         "shafts": n_shafts,
         "non_empty_shafts": non_empty,
-        "candidate_references": total,
+        "candidate_references": total,  # all shafts' lists together, as one list per shaft held them
+        "ls_sets": n_sets,
+        "ls_set_references": set_refs,
         "ls_bytes": sum(b.nbytes for b in offset_bufs.values()) + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
         "ls_offset_buffers": offsets.chunks,
@@ -499,7 +624,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_candidate_chunk": plan.chunk,
         "ls_work_items": plan.items,
         "ls_cell_batches": len(plan.batches),
-        "ls_pair_bits": keep_bits,
+        "ls_pair_bits": all_bits,
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits)
@@ -517,3 +642,45 @@ def _scan_split(device: Device, array: SplitArray, bufs: dict[str, DeviceBuffer]
             device.dispatch(LS_CARRY, entries, {"ls_carry_chunk": bufs[name]}, dict(u, ls_carry=carry & UINT32_MAX))
         carry += chunk_total
     return carry
+
+
+# ---- Reading the layout on the host (tests, the model's sample) ---------------------------------
+def read_array(device: Device, buffers: dict[str, DeviceBuffer], base: str) -> np.ndarray:
+    """A split array's buffers (base, base1, base2, ...) read back as one int64 array."""
+    names = sorted((k for k in buffers if k == base or (k.startswith(base) and k[len(base):].isdigit())),
+                   key=lambda k: (len(k), k))
+    return np.concatenate([device.read(buffers[k], np.uint32) for k in names]).astype(np.int64)
+
+
+def shaft_ranges(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """(begin, end) in ls_shaft_tris of every shaft of every Line Space (cell-major), decoded from
+    ls_shaft_offsets as trace.h's shaft_list reads it."""
+    words = np.asarray(offset_words, np.int64)
+    blocks = _blocks(words, per_cell)
+    packed = blocks[:, 1:]
+    local = np.stack([packed & 0xFFFF, packed >> 16], axis=-1).reshape(len(blocks), -1)[:, :per_cell]
+    sets = (blocks[:, :1] + local).ravel()
+    return words[sets], words[sets + 1]
+
+
+def _blocks(words: np.ndarray, per_cell: int) -> np.ndarray:
+    """The per-cell blocks (cells, 1 + (per_cell + 1) / 2) of ls_shaft_offsets."""
+    width = _block_words(per_cell)
+    cells = int(words[0]) // width if len(words) > 1 else 0  # the first block points just past the blocks
+    return words[:cells * width].reshape(cells, width)
+
+
+def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """The lists expanded to one per shaft: (CSR offsets, shafts + 1 entries; the candidates)."""
+    begin, end = shaft_ranges(offset_words, per_cell)
+    counts = end - begin
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    where = np.repeat(begin - offsets[:-1], counts) + np.arange(int(offsets[-1]))
+    return offsets, np.asarray(tris, np.int64)[where]
+
+
+def cell_set_sizes(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct sets, their triangle ids) of each Line Space, from ls_shaft_offsets."""
+    words = np.asarray(offset_words, np.int64)
+    first = np.append(_blocks(words, per_cell)[:, 0], len(words) - 1)  # the last offset ends the last set
+    return np.diff(first), np.diff(words[first])

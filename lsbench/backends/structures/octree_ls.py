@@ -64,12 +64,12 @@ class LineSpaceOctree:
             device.compile(spec)
 
     def predicted_bytes(self, device: Device, nodes: int, leaves: int, references: int, ls_cells: int,
-                        n: int, candidates: int) -> dict[str, int]:
+                        n: int, lists: linespace.ListSizes) -> dict[str, int]:
         """The bytes of each buffer build returns (lsbench/model/bytes.py): the octree's, the leaf
-        -> Line Space index, and the Line Spaces of `ls_cells` leaves holding `candidates` in all."""
+        -> Line Space index, and the Line Spaces of `ls_cells` leaves whose distinct sets are `lists`."""
         out = svo.predicted_bytes(self.layout, nodes, leaves, references)
         out["ls_ids"] = 4 * (leaves + 1)
-        out.update(linespace.predicted_bytes(device, ls_cells, n, candidates))
+        out.update(linespace.predicted_bytes(device, ls_cells, n, lists))
         return out
 
     def build(self, device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,

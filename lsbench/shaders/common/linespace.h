@@ -13,17 +13,26 @@
 // the smaller face of the two. The thesis looks block up in faceToBlockMap; the closed form
 // below enumerates the same 15 pairs (0,1),(0,2),..,(4,5) in order.
 //
-// Storage: shaft s of Line Space c has the candidates
-//   ls_shaft_tris[ls_shaft_offsets[c * 15N^4 + s] .. ls_shaft_offsets[c * 15N^4 + s + 1]]
-// (one CSR offset per shaft: the count is the difference to the next offset, which halves the
-// thesis' count + offset pair).
+// Storage: one list per distinct candidate set of a cell (issue 16: 92-95 % of a cell's non-empty
+// shafts repeat another shaft's set, docs/linespace-build.md). ls_shaft_offsets holds, for C Line
+// Spaces of S = 15 N^4 shafts, one block of B = 1 + (S + 1) / 2 words per Line Space, then the
+// set offsets:
+//   [c B]                   where Line Space c's first set offset is: C B + its first set
+//   [c B + 1 + s / 2]       bits 16 (s & 1) .. +15: shaft s's set, counted from its cell's first
+//   [C B + g], g = 0..sets  set g's candidates are ls_shaft_tris[[C B + g] .. [C B + g + 1])
+// so a lookup (trace.h: shaft_list) reads two words of one block and a set's two offsets. A cell's
+// sets number at most its S shafts, so 16 bits hold N <= 8. The sets of a cell are numbered in the
+// order of their first shaft; each lists its triangles in the cell's list order, as the
+// one-list-per-shaft layout before it did.
 // Both arrays may be split over up to 4 buffers each (linespace.py: SplitArray, when they pass the
 // driver's per-buffer limit). Kernels reach them only through these macros; the defaults below
 // are the one-buffer case, split kernels get generated ones (a chain of chunk compares over
 // ls_shaft_offsets, ls_shaft_offsets1, ..). A macro names its buffers only where it is used, so a
-// kernel that binds an array write-only (count: offsets; fill: candidates) never reads it.
+// kernel that binds an array write-only (layout: offsets; fill: candidates) never reads it.
 //   LS_OFFSET(i), LS_OFFSET_STORE(i, v)       entry i of the shaft offsets
 //   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) candidate i
+// The build's per-shaft set words (LS_SHAFT_SET: index in the cell | LS_SET_HEAD on a set's first
+// shaft) and set lengths, scanned into the set offsets (LS_SET_LEN), are split the same way.
 #ifndef LS_OFFSET
 #define LS_OFFSET(i) V(ls_shaft_offsets)[i]
 #define LS_OFFSET_STORE(i, v) V(ls_shaft_offsets)[i] = (v)
@@ -39,6 +48,17 @@
 #define LS_ITEM(i) V(ls_item_offsets)[i]
 #define LS_ITEM_STORE(i, v) V(ls_item_offsets)[i] = (v)
 #endif
+#ifndef LS_SHAFT_SET
+#define LS_SHAFT_SET(i) V(ls_shaft_sets)[i]
+#define LS_SHAFT_SET_STORE(i, v) V(ls_shaft_sets)[i] = (v)
+#endif
+#ifndef LS_SET_LEN
+#define LS_SET_LEN(i) V(ls_set_lens)[i]
+#define LS_SET_LEN_STORE(i, v) V(ls_set_lens)[i] = (v)
+#endif
+// The item of a shaft that is not its set's first: the fill skips it (ls_dest_kernel).
+#define LS_SKIP 0xffffffffu
+#define LS_SET_HEAD 0x80000000u
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
 
@@ -388,7 +408,10 @@ INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, flo
 
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
 // With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
-// cell c's bits start at ls_ref_bases[c] * 15 N^4, shaft-major), and the fill only reads them.
+// cell c's bits start at (ls_ref_bases[c] - ls_bits_base) * 15 N^4, shaft-major: the bits of all
+// cells, or of one batch where they do not all fit), the sets are found from them (ls_hash_kernel
+// below) and the fill only reads them. Either fill writes only each set's first shaft: the other
+// shafts' items hold LS_SKIP.
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint item = gid + V(ls_item_base);
@@ -402,10 +425,11 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint first_i = begin + chunk * V(ls_chunk);
     uint end_i = end - first_i > V(ls_chunk) ? first_i + V(ls_chunk) : end;
 #ifdef LS_PAIR_BITS
-    uint bit = V(ls_ref_bases)[cell] * shafts + shaft * (end - begin) + (first_i - begin);
+    uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
 #endif
 #if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
-    uint first = LS_ITEM(item);
+    uint first = LS_ITEM(item);  // where the item's part of its set's list goes (ls_dest_kernel)
+    if (first == LS_SKIP) return;
     uint count = 0u;
     for (uint i = first_i; i < end_i; ++i, ++bit) {
         if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
@@ -436,6 +460,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p7 = V(ls_planes)[pb + 7u];
 #ifdef KERNEL_ls_fill
     uint first = LS_ITEM(item);
+    if (first == LS_SKIP) return;
 #endif
     uint count = 0u;
 #ifdef LS_PAIR_BITS
@@ -591,22 +616,197 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#ifdef KERNEL_ls_gather
-// ---- Build: shaft offsets from the item offsets, where some cell has more than one chunk ----
-// Shaft s of cell c starts where its first chunk does; entry 15 N^4 * cells is the total.
-INLINE void ls_gather_kernel(CTX_PARAM uint gid) {
-    uint shafts = V(ls_shafts);
-    uint cell = gid / shafts;
-    uint item = V(ls_item_bases)[cell];
-    if (cell < V(ls_cell_end)) item += (gid % shafts) * ((V(ls_item_bases)[cell + 1u] - item) / shafts);
-    LS_OFFSET_STORE(gid, LS_ITEM(item));
+#if defined(KERNEL_ls_hash) || defined(KERNEL_ls_insert)
+// ---- Build: one list per distinct candidate set of a cell (issue 16) -----------------------
+// A group of cells [ls_cell_first, ls_cell_end) at a time, its shafts numbered b = 0.. from the
+// group's first: shaft b's decisions are its row of ls_pair_bits (one bit per reference of its
+// cell, in list order), so two shafts have the same set iff their rows are equal. (1) ls_hash: a
+// hash per row; (2) ls_insert: each shaft looks its row up in its cell's open-addressing table of
+// 2 x 15 N^4 slots, claiming an empty slot (compare-and-swap) or joining the slot whose claimer
+// has the same hash AND, compared word by word, the same row: the hash only picks the slot, it
+// never decides equality; (3) ls_min: each slot ends holding its smallest member, so the result
+// does not depend on which member claimed it first; (4) ls_heads: that member is the set's first
+// shaft (its "head"); (5) ls_shaft_set: a shaft's set index within its cell = the heads before its
+// head, so sets are numbered in the order of their first shaft.
+// Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
+INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
+    return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
+}
+
+// Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
+INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
+    uint pos = start + 32u * k;
+    uint bits = min(len - 32u * k, 32u);
+    uint off = pos & 31u;
+    uint w = V(ls_pair_bits)[pos >> 5u] >> off;
+    if (off != 0u && off + bits > 32u) w |= V(ls_pair_bits)[(pos >> 5u) + 1u] << (32u - off);
+    return bits < 32u ? (w & ((1u << bits) - 1u)) : w;
 }
 #endif
 
-#ifdef KERNEL_ls_nonempty
-// ---- Build stats: shafts with at least one candidate ----------------------------------------
-INLINE void ls_nonempty_kernel(CTX_PARAM uint gid) {
-    if (LS_OFFSET(gid + 1u) > LS_OFFSET(gid)) ATOMIC_ADD(V(ls_stats)[0], 1u);
+#ifdef KERNEL_ls_hash
+INLINE void ls_hash_kernel(CTX_PARAM uint b) {
+    uint shafts = V(ls_shafts);
+    uint s = V(ls_cell_first) * shafts + b;
+    uint cell = s / shafts;
+    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    uint start = ls_row_start(CTX_ARG cell, s % shafts, len);
+    uint h = 2166136261u;  // FNV-1a over the row's words
+    for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
+#ifdef LS_HASH_MASK
+    h &= LS_HASH_MASK;  // tests: a hash that collides, so only the word-by-word compare tells sets apart
+#endif
+    V(ls_set_hash)[b] = h;
+}
+#endif
+
+#ifdef KERNEL_ls_insert
+INLINE int ls_rows_equal(CTX_PARAM uint start_a, uint start_b, uint len) {
+    for (uint k = 0u; 32u * k < len; ++k)
+        if (ls_row_word(CTX_ARG start_a, len, k) != ls_row_word(CTX_ARG start_b, len, k)) return 0;
+    return 1;
+}
+
+// Table slots hold member + 1 (0: empty); ls_set_slot[b] gets the slot shaft b joined.
+INLINE void ls_insert_kernel(CTX_PARAM uint b) {
+    uint shafts = V(ls_shafts);
+    uint b0 = V(ls_cell_first) * shafts;
+    uint cell = (b0 + b) / shafts;
+    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    uint start = ls_row_start(CTX_ARG cell, (b0 + b) % shafts, len);
+    uint size = 2u * shafts;
+    uint region = (cell - V(ls_cell_first)) * size;
+    uint h = V(ls_set_hash)[b];
+    uint slot = h % size;
+    // At most `shafts` of the `size` slots are ever taken, so an empty one comes within size probes.
+    for (uint probe = 0u; probe < size; ++probe) {
+        uint at = region + slot;
+        uint v = V(ls_set_table)[at];
+        if (v == 0u) {
+            v = ATOMIC_CAS(V(ls_set_table)[at], 0u, b + 1u);
+            if (v == 0u) { V(ls_set_slot)[b] = at; return; }
+        }
+        uint other = v - 1u;
+        if (V(ls_set_hash)[other] == h &&
+            ls_rows_equal(CTX_ARG ls_row_start(CTX_ARG cell, (b0 + other) % shafts, len), start, len) != 0) {
+            V(ls_set_slot)[b] = at;
+            return;
+        }
+        slot = slot + 1u == size ? 0u : slot + 1u;
+    }
+}
+#endif
+
+#ifdef KERNEL_ls_min
+INLINE void ls_min_kernel(CTX_PARAM uint b) {
+    ATOMIC_MIN(V(ls_set_table)[V(ls_set_slot)[b]], b + 1u);
+}
+#endif
+
+#ifdef KERNEL_ls_heads
+// ls_set_slot[b] becomes b's head; heads are flagged in ls_set_heads (one bit per group shaft)
+// and counted per cell in ls_cell_sets.
+INLINE void ls_heads_kernel(CTX_PARAM uint b) {
+    uint head = V(ls_set_table)[V(ls_set_slot)[b]] - 1u;
+    V(ls_set_slot)[b] = head;
+    if (head == b) {
+        ATOMIC_OR(V(ls_set_heads)[b >> 5u], 1u << (b & 31u));
+        ATOMIC_ADD(V(ls_cell_sets)[(V(ls_cell_first) * V(ls_shafts) + b) / V(ls_shafts)], 1u);
+    }
+}
+#endif
+
+#ifdef KERNEL_ls_shaft_set
+#ifdef LANG_GLSL
+#define LS_POPCOUNT(x) U32(bitCount(x))
+#else
+#define LS_POPCOUNT(x) popcount(x)
+#endif
+// The heads among group shafts [lo, hi).
+INLINE uint ls_heads_between(CTX_PARAM uint lo, uint hi) {
+    uint count = 0u;
+    for (uint w = lo >> 5u; 32u * w < hi; ++w) {
+        uint bits = V(ls_set_heads)[w];
+        if (32u * w < lo) bits &= 0xffffffffu << (lo - 32u * w);
+        if (hi - 32u * w < 32u) bits &= (1u << (hi - 32u * w)) - 1u;
+        count += LS_POPCOUNT(bits);
+    }
+    return count;
+}
+
+INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
+    uint shafts = V(ls_shafts);
+    uint head = V(ls_set_slot)[b];
+    uint index = ls_heads_between(CTX_ARG b - b % shafts, head);  // group shafts of one cell are aligned
+    LS_SHAFT_SET_STORE(V(ls_cell_first) * shafts + b, index | (head == b ? LS_SET_HEAD : 0u));
+}
+#endif
+
+#if defined(KERNEL_ls_set_len) || defined(KERNEL_ls_dest)
+// The first count/fill item of shaft s (of all cells) and its cell's items per shaft.
+STRUCT(LsItems) { uint first; uint chunks; };
+
+INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
+    uint shafts = V(ls_shafts);
+    uint cell = s / shafts;
+    uint item0 = V(ls_item_bases)[cell];
+    LsItems it;
+    it.chunks = (V(ls_item_bases)[cell + 1u] - item0) / shafts;
+    it.first = item0 + (s % shafts) * it.chunks;
+    return it;
+}
+#endif
+
+#ifdef KERNEL_ls_set_len
+// After the item scan: each head writes its set's length (then scanned into the set offsets);
+// every non-empty shaft is counted (stats).
+INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
+    LsItems it = ls_shaft_items(CTX_ARG s);
+    uint len = LS_ITEM(it.first + it.chunks) - LS_ITEM(it.first);
+    uint set = LS_SHAFT_SET(s);
+    if ((set & LS_SET_HEAD) != 0u)
+        LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), len);
+    if (len > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
+}
+#endif
+
+#ifdef KERNEL_ls_dest
+// Each item of a head gets where its part of the set's list starts; the other shafts' items LS_SKIP.
+INLINE void ls_dest_kernel(CTX_PARAM uint s) {
+    LsItems it = ls_shaft_items(CTX_ARG s);
+    uint set = LS_SHAFT_SET(s);
+    if ((set & LS_SET_HEAD) == 0u) {
+        for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, LS_SKIP);
+        return;
+    }
+    uint begin = LS_SET_LEN(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD));
+    uint off0 = LS_ITEM(it.first);
+    for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, begin + (LS_ITEM(it.first + k) - off0));
+}
+#endif
+
+#ifdef KERNEL_ls_layout
+// ---- Build: the Line Spaces' ls_shaft_offsets (layout at the top), one entry per work item ----
+INLINE void ls_layout_kernel(CTX_PARAM uint e) {
+    uint shafts = V(ls_shafts);
+    uint block = 1u + (shafts + 1u) / 2u;
+    uint set_start = V(ls_cell_end) * block;
+    uint v;
+    if (e >= set_start) v = LS_SET_LEN(e - set_start);
+    else if (e % block == 0u) v = set_start + V(ls_cell_sets)[e / block];
+    else {
+        uint pair = 2u * (e % block - 1u);
+        uint s = (e / block) * shafts + pair;
+        v = LS_SHAFT_SET(s) & 0xffffu;
+        if (pair + 1u < shafts) v |= (LS_SHAFT_SET(s + 1u) & 0xffffu) << 16u;
+    }
+    LS_OFFSET_STORE(e, v);
+}
+#endif
+
+#ifdef KERNEL_ls_zero
+INLINE void ls_zero_kernel(CTX_PARAM uint gid) {
+    V(ls_zero)[gid] = 0u;
 }
 #endif
 

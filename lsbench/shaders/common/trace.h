@@ -282,12 +282,15 @@ INLINE uint cell_line_space(CTX_PARAM uint cell) {
     return V(ls_ids)[cell + 1u] > ls ? ls : LS_NONE;
 }
 
-// The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`.
+// The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`: its block's
+// first set and the shaft's 16-bit set index, then that set's range (layout: top of linespace.h).
 INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
-    uint sid = ls * V(ls_shafts) + shaft;
+    uint block = ls * (1u + (V(ls_shafts) + 1u) / 2u);
+    uint word = LS_OFFSET(block + 1u + shaft / 2u);
+    uint set = LS_OFFSET(block) + ((word >> (16u * (shaft & 1u))) & 0xffffu);
     Candidates c;
-    c.begin = LS_OFFSET(sid);
-    c.end = LS_OFFSET(sid + 1u);
+    c.begin = LS_OFFSET(set);
+    c.end = LS_OFFSET(set + 1u);
     c.from_shaft = 1;
     return c;
 }

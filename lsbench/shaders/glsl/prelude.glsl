@@ -37,6 +37,7 @@
 #define ATOMIC_MIN(lvalue, v) atomicMin(lvalue, v)
 #define ATOMIC_OR(lvalue, v) atomicOr(lvalue, v)
 #define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
+#define ATOMIC_CAS(lvalue, expected, v) atomicCompSwap(lvalue, expected, v)
 #define LANG_GLSL 1
 // Device clock for the profiling counters (COUNT_WORK builds; Delgado Kraemer 2019, 6.3, Fig. 20b):
 // `uint c0 = CLOCK_START(); ... CLOCK_ELAPSED(c0)` gives uint ticks, a 32-bit difference that

@@ -29,6 +29,7 @@
 #define ATOMIC_MIN(lvalue, v) atomic_min(&(lvalue), v)
 #define ATOMIC_OR(lvalue, v) atomic_or(&(lvalue), v)
 #define ATOMIC_XCHG(lvalue, v) atomic_xchg(&(lvalue), v)
+#define ATOMIC_CAS(lvalue, expected, v) atomic_cmpxchg(&(lvalue), expected, v)
 #define LANG_OPENCL 1
 // Device clock for the profiling counters (COUNT_WORK builds): `uint c0 = CLOCK_START(); ...
 // CLOCK_ELAPSED(c0)` gives uint ticks (32-bit difference). OpenCL C has no clock builtin; the
