@@ -27,14 +27,15 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    into buffers of exactly that size. Sponza: 4-wide nodes take 40 node visits per primary ray
    where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
 
-Speed (`lsbench speedtest --structures grid esvo bvh bvh-ls`, Sponza 256² from speedtest.toml's
-interior camera, 2 shared cores, Embree in the same worker; three runs at different loads): bvh
-on PoCL 0.38-0.48x Embree on primary rays and 0.31-0.37x on incoherent ones (esvo 512³ in the
-same runs: 0.33-0.36x, 0.09-0.17x; tinybvh's Aila-Laine kernel on PoCL: 0.62x, 0.54x), on
-llvmpipe 0.06x and 0.10x. Where the time goes: ~35 node visits of 4 box tests
-and ~8 triangle tests per primary ray, in scalar work items (PoCL runs these divergent loops one
-work item at a time, the float4 slab test is its only SIMD); the tree, a Morton-code LBVH even
-after the treelets (SAH cost 102), takes more visits than a binned-SAH build would.
+Speed (`lsbench speedtest --size 512x512`, the best setting of every structure in speedtest.toml,
+Sponza from its interior camera, Embree in the same worker on the 2-core machine at a load of 2-3):
+bvh on PoCL 0.56x Embree on primary rays (esvo 512³ 0.50x, grid-ls 64³ N=3 0.43x), on llvmpipe
+0.15x; BMW (its own camera) 1.20x and 0.31x. tinybvh's Aila-Laine kernel on PoCL reached 0.62x on
+the same Sponza rays. Where the time goes and what was tried (docs/profiles.md, section 7): ~31
+node visits of 4 box tests and ~6 triangle tests per primary ray in scalar work items (PoCL runs
+these divergent loops one work item at a time; the float4 slab test is its only SIMD), a
+data-dependent branch per hit slot, and the watertight triangle test; the tree is within 5 % of a
+full-sweep SAH tree's node visits on these rays.
 
 Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
 (32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
