@@ -6,8 +6,8 @@ so both see the same load on a shared machine (docs/profiles.md, section 7):
         (--defines NAME[=VALUE],... | --local-size N | --leaf-size-b L)
 
 A is the case as built; B is its trace kernel compiled with extra defines (a variant kept behind
-an #ifdef while it is measured; one A has, e.g. BVH_STACK, is replaced), with another work-group size, or a second build with another
-leaf size. Prints each variant's min and median device time, the median of the K per-pair ratios
+an #ifdef while it is measured; a define the build already sets, e.g. BVH_STACK, is replaced),
+with another work-group size, or a second build with another leaf size. Prints each variant's min and median device time, the median of the K per-pair ratios
 B/A with its quartiles, and whether B's hits equal A's (prim ids and distances). A single pair
 swings by ±10 % under load; the median of 20 pairs resolves about 3 %.
 """
@@ -54,8 +54,8 @@ def main(argv=None) -> None:
     for _ in range(args.pairs):
         for built, out in zip((a, b), times):
             out.append(min(backends.time_trace(built, rays, warmup=0, repeats=1).seconds))
-    ratios = [tb / ta for ta, tb in zip(*times)]
-    (ta, tb) = times
+    ta, tb = times
+    ratios = [b_s / a_s for a_s, b_s in zip(ta, tb)]
     print(f"{args.structure} {args.backend} {args.rays}, B = {label}: "
           f"A min {min(ta) * 1e3:.1f} median {statistics.median(ta) * 1e3:.1f} ms | "
           f"B min {min(tb) * 1e3:.1f} median {statistics.median(tb) * 1e3:.1f} ms | "
