@@ -240,7 +240,8 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
         d.finish()
         order = launch_order(rays)
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
-                    _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices)
+                    _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices,
+                    slice_budget=budget)
         if work:
             hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
     finally:

@@ -132,7 +132,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             raise DeviceLimitError(f"the structure takes {built.memory_bytes / 2**20:.1f} MiB, over the "
                                    f"device-memory budget of {budget:g} MiB (budget_mib, --budget)")
         hits = backends.trace(built, rays)
-        rec.update(trace_slices=hits.slices, slice_budget=backends.slice_budget(device))
+        rec.update(trace_slices=hits.slices, slice_budget=hits.slice_budget)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
         rec.accuracy, rec.classification = judge_hits(scene, rays, hits.prim_ids, hits.distances,
                                                       ref_prim, ref_t, rel_tol=settings.rel_tol)

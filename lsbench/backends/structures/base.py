@@ -122,6 +122,7 @@ class Hits:
     distances: np.ndarray  # float32, inf for a miss
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace, WORK_CHANNELS
     slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
+    slice_budget: int | None = None  # loop iterations per ray and launch it started with (None: unbounded)
 
 
 QUERIES = ("closest", "any")
