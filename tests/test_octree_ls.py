@@ -65,7 +65,9 @@ def test_leaf_linespaces_equal_grid_ls_voxels(device, monkeypatch, structure, n)
     ref_rows = shaft_triples(non_empty, *read_linespaces(ref)[1:], shafts)
 
     # Leaves come in Morton order of the non-empty voxels; each has a Line Space, its own.
-    x, y, z = non_empty % res, (non_empty // res) % res, non_empty // (res * res)
+    rx, ry, _ = oct_.geometry.resolution  # the scene's box in the cube's voxels (8 x 4 x 8)
+    assert oct_.geometry.resolution != (res,) * 3
+    x, y, z = non_empty % rx, (non_empty // rx) % ry, non_empty // (rx * ry)
     leaf_voxels = non_empty[np.argsort(morton(x, y, z))]
     st = oct_.stats
     assert st["leaves"] == len(leaf_voxels) == st["linespace_leaves"] == st["linespace_cells"]

@@ -92,15 +92,20 @@ def test_levels_and_leaves_equal_reference(device, structure, scene_name, res):
     built = backends.build(device, structure, sc, BuildParams(resolution=(res, res, res)))
     depth = built.stats["depth"]
     assert 2 ** depth == res
+    # The voxel lists cover the scene's box in the cube's voxels; the rest of the cube is empty.
+    box = built.geometry.resolution
+    assert built.geometry.cube == res and max(box) == res and min(box) >= 1
+    assert np.allclose(built.geometry.voxel_size, built.geometry.voxel_size[0])  # cubic voxels
     offsets, ref_tris = device_voxel_lists(built)
     counts = np.diff(offsets)
-    occupied = (counts > 0).reshape(res, res, res).transpose(2, 1, 0)  # voxel = x + R (y + R z)
+    occupied = np.zeros((res,) * 3, bool)
+    occupied[: box[0], : box[1], : box[2]] = (counts > 0).reshape(box[::-1]).transpose(2, 1, 0)  # voxel = x + Rx (y + Ry z)
     want = reference_levels(occupied, depth)
     got, leaf_of = decode(built)
 
     assert [len(s) for s in want[:depth]] == built.stats["nodes_per_level"]
     assert built.stats["leaves"] == len(want[depth]) == int(occupied.sum())
-    assert built.stats["empty_fraction"] == pytest.approx(1 - occupied.sum() / res ** 3)
+    assert built.stats["empty_fraction"] == pytest.approx(1 - occupied.sum() / np.prod(box))
     for level in range(depth + 1):
         assert got[level] == want[level], f"level {level}"
 
@@ -110,7 +115,7 @@ def test_levels_and_leaves_equal_reference(device, structure, scene_name, res):
     tris = d.read(built.buffers["voxel_tris"], np.uint32)
     assert sorted(leaf_of.values()) == list(range(len(leaves)))
     for (x, y, z), leaf in leaf_of.items():
-        v = x + res * (y + res * z)
+        v = x + box[0] * (y + box[1] * z)
         first, count = leaves[leaf]
         assert (first, count) == (offsets[v], counts[v])
         assert sorted(tris[first:first + count]) == sorted(ref_tris[offsets[v]:offsets[v + 1]])

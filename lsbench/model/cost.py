@@ -18,7 +18,8 @@ constants per device (model/constants.py: measured by `lsbench fit`, or document
 
 Settings tried for "auto" (Ize, Shirley & Parker 2007: a uniform grid wants cells ~ lambda x
 triangles, per axis in proportion to the scene's extents): grids at lambda in GRID_LAMBDAS, non-cubic;
-octrees the cubic powers of two 2^OCTREE_LEVELS (thesis 6.3: they force the bounding cube); N in
+octrees the cubic powers of two 2^OCTREE_LEVELS (thesis 6.3: they force the bounding cube; here only
+its cells over the scene's box are counted and walked, GridGeometry.over_bounds); N in
 AUTO_NS; K in AUTO_KS. The cheapest predicted time that fits the budget wins; `choose` returns every
 option with its prediction (the record keeps the runners-up).
 """
@@ -38,7 +39,7 @@ from lsbench.model.constants import family, load_constants
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
 
 GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
-OCTREE_LEVELS = tuple(range(3, 9))  # 8^3 .. 256^3
+OCTREE_LEVELS = tuple(range(3, 10))  # 8^3 .. 512^3, those whose box has at most the voxels allowed
 LS_MAX_VOXELS = 2**21  # Line Space settings tried: at most 128^3 cells (15 N^4 shafts each)
 GRID_MAX_VOXELS = 2**24
 AUTO_NS = (1, 2, 3, 4)
@@ -72,9 +73,8 @@ def ray_sample(rays, hit_t: np.ndarray, size: int = RAY_SAMPLE) -> RaySample:
                      np.full(len(idx), float(rays.tmin)), t_end)
 
 
-def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
-    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1, front
-    to back: (ray index, flat cell x + Rx (y + Ry z)) pairs. Vectorised over the rays."""
+def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
+    """(enter, leave, 1/d) of each ray in the box [0, res] within [t0, t1] (enter > leave: it misses)."""
     res = np.asarray(res, np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(d != 0, 1.0 / np.where(d != 0, d, 1.0), np.inf)
@@ -82,8 +82,14 @@ def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, 
         inside = (o >= 0) & (o <= res)
         lo = np.where(d != 0, np.minimum(ta, tb), np.where(inside, -np.inf, np.inf))
         hi = np.where(d != 0, np.maximum(ta, tb), np.where(inside, np.inf, -np.inf))
-    enter = np.maximum(t0, lo.max(axis=1))
-    leave = np.minimum(t1, hi.min(axis=1))
+    return np.maximum(t0, lo.max(axis=1)), np.minimum(t1, hi.min(axis=1)), inv
+
+
+def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1, front
+    to back: (ray index, flat cell x + Rx (y + Ry z)) pairs. Vectorised over the rays."""
+    res = np.asarray(res, np.float64)
+    enter, leave, inv = box_span(o, d, t0, t1, res)
     rows = np.flatnonzero(enter <= leave)
     p = o[rows] + d[rows] * enter[rows, None]
     cell = np.clip(np.floor(p), 0, res - 1).astype(np.int64)
@@ -193,9 +199,12 @@ def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndar
         if octree:
             levels = counts.occupancy
             depth = len(levels) - 1
+            # Both walks cover the scene's box only (svo.h, esvo.h): every level from the ray's
+            # entry into the box.
+            enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
             for level in range(1, depth + 1):
                 lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
-                _, level_cells = crossed_cells(lo, lc, sample.tmin, sample.t_end, (2**level,) * 3)
+                _, level_cells = crossed_cells(lo, lc, enter, leave, (2**level,) * 3)
                 r = 2**level
                 x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
                 iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
@@ -225,8 +234,11 @@ def grid_resolutions(lo, hi, triangles: int, max_voxels: int) -> list[tuple[int,
     return out
 
 
-def octree_resolutions(max_voxels: int) -> list[tuple[int, int, int]]:
-    return [(2**level,) * 3 for level in OCTREE_LEVELS if 8**level <= max_voxels]
+def octree_resolutions(lo, hi, max_voxels: int) -> list[tuple[int, int, int]]:
+    """The octree resolutions 2^OCTREE_LEVELS whose voxels over the scene's box [lo, hi] (what the
+    count pass and the build cover) are at most max_voxels."""
+    return [(2**level,) * 3 for level in OCTREE_LEVELS
+            if GridGeometry.over_bounds(lo, hi, (2**level,) * 3, cubic=True).voxel_count <= max_voxels]
 
 
 @dataclass(frozen=True)
@@ -326,7 +338,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     limit = LS_MAX_VOXELS if info.line_space else GRID_MAX_VOXELS
     if resolution == "auto":
         lo, hi = scene.bounds
-        resolutions = (octree_resolutions(limit) if info.cubic_power_of_two
+        resolutions = (octree_resolutions(lo, hi, limit) if info.cubic_power_of_two
                        else grid_resolutions(lo, hi, scene.triangle_count, limit))
     else:
         resolutions = [parse_resolution(resolution)]

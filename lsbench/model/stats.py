@@ -63,8 +63,12 @@ class VoxelCounts:
     def occupancy_levels(self) -> list[np.ndarray]:
         """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
         boolean (z, y, x) arrays, level l of 2^l cells per axis; a cell is non-empty when one of
-        its 8 children is (svo.py's flag pyramid)."""
-        occ = self.counts > 0
+        its 8 children is (svo.py's flag pyramid). The counts cover the scene's box; the cube's
+        cells past it are empty (GridGeometry.over_bounds, cubic)."""
+        cube = self.geometry.cube or self.counts.shape[0]
+        occ = np.zeros((cube,) * 3, bool)
+        rz, ry, rx = self.counts.shape
+        occ[:rz, :ry, :rx] = self.counts > 0
         levels = [occ]
         while occ.shape[0] > 1:
             r = occ.shape[0] // 2

@@ -34,28 +34,41 @@ def format_resolution(res: tuple[int, int, int]) -> str:
 
 @dataclass(frozen=True)
 class GridGeometry:
-    """Axis-aligned grid over the scene: voxel (i,j,k) covers origin + [i,i+1]x.. * voxel_size."""
+    """Axis-aligned grid over the scene: voxel (i,j,k) covers origin + [i,i+1]x.. * voxel_size.
+
+    An octree's geometry (cube > 0) has cubic voxels of its bounding cube's leaf level, 2^L = cube
+    per edge, but `resolution` covers only the scene's box: the cube is anchored at `origin` and its
+    cells past `resolution` on the short axes are empty by construction, so neither the voxelization
+    nor the walk pays for them (Delgado Krämer 2019, 6.3 and 7: the cube wastes space on
+    non-cubic scenes)."""
     origin: tuple[float, float, float]
     voxel_size: tuple[float, float, float]
     resolution: tuple[int, int, int]
+    cube: int = 0  # octrees: the cube's edge in voxels (2^L, >= every resolution); 0 for a grid
 
     @staticmethod
     def over_bounds(lo, hi, resolution, cubic: bool = False) -> "GridGeometry":
         """Grid over [lo, hi], padded by a hair so no triangle lies on the outer boundary.
         A flat axis (zero extent) gets a small extent so voxels never have zero size.
-        cubic: use the bounding cube (octrees), centred on the scene."""
+        cubic (octrees; resolution (R, R, R)): cubic voxels, R along the longest axis, and on the
+        others the fewest that cover the scene, centred on it (`cube` = R)."""
         lo = np.asarray(lo, np.float64)
         hi = np.asarray(hi, np.float64)
         diag = float(np.linalg.norm(hi - lo)) or 1.0
         extent = np.maximum(hi - lo, 1e-3 * diag)
         centre = 0.5 * (lo + hi)
-        if cubic:
-            extent = np.full(3, extent.max())
         extent = extent * (1 + 2e-5) + 1e-6 * diag + 1e-30
-        origin = centre - 0.5 * extent
         res = np.asarray(resolution, np.float64)
+        cube = 0
+        if cubic:
+            cube = int(resolution[0])
+            edge = extent.max() / cube
+            # The padding above keeps every triangle off the box's faces on the short axes too.
+            res = np.minimum(np.ceil(extent / edge), cube)
+            extent = res * edge
+        origin = centre - 0.5 * extent
         return GridGeometry(tuple(origin.tolist()), tuple((extent / res).tolist()),
-                            tuple(int(r) for r in resolution))
+                            tuple(int(r) for r in res), cube)
 
     @property
     def voxel_count(self) -> int:
@@ -77,7 +90,7 @@ class BuildParams:
     resolution: tuple[int, int, int]
     ls_n: int = 0  # Line Space patches per face edge (0 = no Line Space)
     ls_min_candidates: int = 0  # build Line Spaces only in voxels with more candidates than this
-    bounding_cube: bool = False  # grid over the bounding cube even where not needed (compare with octrees)
+    bounding_cube: bool = False  # a grid on an octree's geometry (GridGeometry.over_bounds cubic): compare with octrees
     leaf_size: int = 0  # bvh, bvh-ls: most triangles per leaf (0 = the structure's default; bvh.LEAF_SIZES)
     options: dict = field(default_factory=dict)
 

@@ -21,7 +21,12 @@ The build (shared with `esvo`, see `build_octree`) runs on the device from the v
 4. link leaves: one work item per cell of the leaf level; every leaf gets (first, count) of its voxel's candidates in voxel_tris; the
    dense voxel_offsets (4 bytes per voxel) is released after the build.
 
-Temporary buffers: the pyramid and its ranks, R^3/32 * 8/7 words each (1 bit per voxel).
+The octree covers its bounding cube (R = 2^L voxels per edge), but the voxel lists cover only the
+scene's box in the cube's voxels (GridGeometry.over_bounds, cubic): the cube's cells outside the box
+are empty without being voxelized, and no buffer but the bit pyramid spans the cube.
+
+Temporary buffers: the voxel lists' dense offsets (4 bytes per voxel of the box), the pyramid and
+its ranks, R^3/32 * 8/7 words each (1 bit per voxel of the cube).
 """
 from __future__ import annotations
 
@@ -119,7 +124,7 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
     pyramid still exists (pyramid: dict with the level_words, oct_bits and oct_ranks buffers,
     the build's uniforms and leaf_cells, the work items of a kernel per leaf-level cell);
     svo-ls / esvo-ls find their leaves' voxels there (octree_ls.py)."""
-    depth = octree_depth(geometry.resolution)
+    depth = octree_depth((geometry.cube,) * 3)
     nodes_name, node_bytes, create = LAYOUTS[layout]
     vox, vstats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
     offsets, tris = vox["voxel_offsets"], vox["voxel_tris"]
@@ -158,7 +163,7 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
             for what, n in (("internal nodes", n_nodes), ("leaves", n_leaves)):
                 if n > ESVO_POINTER_LIMIT:
                     raise DeviceLimitError(
-                        f"esvo: {n} {what} at {geometry.resolution[0]}^3 overflow the 24-bit child "
+                        f"esvo: {n} {what} at {geometry.cube}^3 overflow the 24-bit child "
                         f"pointer of the 32-bit descriptor (limit {ESVO_POINTER_LIMIT}, thesis Listing 2)")
         # 3. create nodes and 4. link leaves, into buffers of exactly the counted size.
         nodes = device.alloc(nodes_name, node_bytes * max(n_nodes, 1))  # zero: an empty scene's root
@@ -195,7 +200,8 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
         "nodes_per_level": [int(n) for n in per_level[:depth]],
         "nodes": n_nodes,
         "leaves": n_leaves,
-        "empty_fraction": 1.0 - n_leaves / voxels,
+        "empty_fraction": 1.0 - n_leaves / voxels,  # of the scene's box (the cube's rest is empty)
+        "cube_voxels": geometry.cube ** 3,
         "temp_bytes": int(temp_bytes),
     })
     return {nodes_name: nodes, "leaves": leaves, "voxel_tris": tris}, stats

@@ -54,11 +54,11 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
     float3 o = ray.o;
     float3 d = ray.d;
-    GridRay gr = make_grid_ray(CTX_ARG o, d);  // esvo-ls' Line Space lookup only
+    GridRay gr = make_grid_ray(CTX_ARG o, d);  // the box's span, and esvo-ls' Line Space lookup
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
     // divided by the cube's edge, shifted by one; the direction divided by the edge and
     // normalized. t' = t * dlen, so every world distance below is t' / dlen.
-    float res = F32(V(grid_res).x);
+    float res = F32(1 << OCT_DEPTH);  // the cube's edge in voxels
     float inv_edge = V(grid_inv_voxel).x / res;
     float3 p = (o - V(grid_origin).xyz) * inv_edge + make_float3(1.0f, 1.0f, 1.0f);
     float3 dn = d * inv_edge;
@@ -84,8 +84,11 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     if (dd.z > 0.0f) { mirror ^= 4u; tz_bias = 3.0f * tz_coef - tz_bias; }
     float t_min = max(max(2.0f * tx_coef - tx_bias, 2.0f * ty_coef - ty_bias), 2.0f * tz_coef - tz_bias);
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
-    t_min = max(t_min, ray.tmin * dlen);
-    t_max = min(t_max, ray.tmax * dlen);
+    // The walk covers the scene's box only (octree.h: the cube's cells past grid_res are empty),
+    // and the ray's [tmin, tmax); the first child is then the one that holds the point at t_min.
+    float2 span = grid_span(gr, ray, make_float3(F32(V(grid_res).x), F32(V(grid_res).y), F32(V(grid_res).z)));
+    t_min = max(t_min, span.x * dlen);
+    t_max = min(t_max, span.y * dlen);
     float t_end = t_max;  // nothing past the ray's end can be hit: the walk stops there
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:

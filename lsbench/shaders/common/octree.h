@@ -5,7 +5,8 @@
 // trace.h, and for LEAF_LINE_SPACE kernels linespace.h and octree_ls.h after this file.
 //
 // The octree covers the bounding cube, resolution R = 2^L (L = OCT_DEPTH levels below the
-// root). Level l has 8^l cells; cell c of level l is the Morton code of its coordinates
+// root), anchored at grid_origin; the voxel lists (grid.h) cover only the scene's box in the
+// cube's voxels, grid_res (<= R per axis): a leaf-level cell outside it is empty. Level l has 8^l cells; cell c of level l is the Morton code of its coordinates
 // (bit 3i = x, 3i+1 = y, 3i+2 = z), so its 8 children are cells 8c..8c+7 of level l+1 and
 // the child slot is x + 2y + 4z, as in Algorithm 1 line 12.
 //
@@ -46,10 +47,14 @@ INLINE int3 oct_cell(uint m) {
     return make_int3(I32(oct_compact3(m)), I32(oct_compact3(m >> 1)), I32(oct_compact3(m >> 2)));
 }
 
-// Linear voxel index (x fastest, as grid.h) of the leaf-level cell with Morton code m.
-INLINE uint oct_voxel(uint m, uint r) {
+// Linear voxel index in the scene's box (x fastest, as grid.h) of the leaf-level cell with Morton
+// code m; OCT_OUTSIDE for a cell of the cube outside the box.
+#define OCT_OUTSIDE 0xffffffffu
+INLINE uint oct_voxel(CTX_PARAM uint m) {
     int3 c = oct_cell(m);
-    return U32(c.x) + r * (U32(c.y) + r * U32(c.z));
+    int3 r = V(grid_res).xyz;
+    if (c.x >= r.x || c.y >= r.y || c.z >= r.z) return OCT_OUTSIDE;
+    return U32(c.x) + U32(r.x) * (U32(c.y) + U32(r.y) * U32(c.z));
 }
 
 // Number of bits below `bit` that are set in `word`.
@@ -62,13 +67,12 @@ INLINE uint oct_rank_in_word(uint word, uint bit) {
 INLINE void oct_flag_leaves_kernel(CTX_PARAM uint gid) {
     uint depth = V(oct_depth);
     uint cells = 1u << (3u * depth);
-    uint r = U32(V(grid_res).x);
     uint bits = 0u;
     for (uint b = 0u; b < 32u; ++b) {
         uint m = 32u * gid + b;
         if (m >= cells) break;
-        uint v = oct_voxel(m, r);
-        if (V(voxel_offsets)[v + 1u] > V(voxel_offsets)[v]) bits |= 1u << b;
+        uint v = oct_voxel(CTX_ARG m);
+        if (v != OCT_OUTSIDE && V(voxel_offsets)[v + 1u] > V(voxel_offsets)[v]) bits |= 1u << b;
     }
     V(oct_bits)[V(level_words)[depth] + gid] = bits;
 }
@@ -161,7 +165,7 @@ INLINE OctLeaf oct_leaf(CTX_PARAM uint m) {
 INLINE void oct_leaves_kernel(CTX_PARAM uint m) {
     OctLeaf lf = oct_leaf(CTX_ARG m);
     if (lf.flagged == 0u) return;
-    uint v = oct_voxel(m, U32(V(grid_res).x));
+    uint v = oct_voxel(CTX_ARG m);  // flagged: inside the box
     uint begin = V(voxel_offsets)[v];
     V(leaves)[2u * lf.id] = begin;
     V(leaves)[2u * lf.id + 1u] = V(voxel_offsets)[v + 1u] - begin;

@@ -42,9 +42,10 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
     float3 og = gr.o;
     float3 dg = gr.d;
     float3 inv = gr.inv;
-    int res = V(grid_res).x;
-    float fres = F32(res);
-    float2 span = grid_span(gr, ray, make_float3(fres, fres, fres));
+    int res = 1 << OCT_DEPTH;  // the cube's edge in voxels
+    // The walk covers the scene's box only (octree.h: the cube's cells past grid_res are empty).
+    int3 box = V(grid_res).xyz;
+    float2 span = grid_span(gr, ray, make_float3(F32(box.x), F32(box.y), F32(box.z)));
     float t0 = span.x;
     float t1 = span.y;
     if (t0 <= t1) {
