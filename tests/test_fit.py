@@ -22,15 +22,18 @@ def _scene_buffers(device, scene):
             "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
 
 
-@pytest.mark.parametrize("structure,resolution,n,k", [
-    ("grid", (12, 7, 9), 0, 0), ("svo", (16, 16, 16), 0, 0), ("esvo", (8, 8, 8), 0, 0),
-    ("grid-ls", (6, 5, 4), 2, 0), ("grid-ls", (8, 8, 8), 1, 6), ("svo-ls", (8, 8, 8), 2, 3),
-    ("esvo-ls", (8, 8, 8), 1, 0)])
-def test_predicted_bytes_equal_the_built_structure(device, structure, resolution, n, k):
+@pytest.mark.parametrize("scene_name,structure,resolution,n,k", [
+    ("cornell", "grid", (12, 7, 9), 0, 0), ("cornell", "svo", (16, 16, 16), 0, 0),
+    ("cornell", "esvo", (8, 8, 8), 0, 0), ("cornell", "grid-ls", (6, 5, 4), 2, 0),
+    ("cornell", "grid-ls", (8, 8, 8), 1, 6), ("cornell", "svo-ls", (8, 8, 8), 2, 3),
+    ("cornell", "esvo-ls", (8, 8, 8), 1, 0),
+    # non-cubic (a 16 x 9 x 16 box in the 16^3 cube): the octree counts only the box
+    ("spheres", "svo", (16, 16, 16), 0, 0), ("spheres", "esvo-ls", (8, 8, 8), 1, 2)])
+def test_predicted_bytes_equal_the_built_structure(device, scene_name, structure, resolution, n, k):
     """Every buffer's bytes as predicted from the count pass (and, for a Line Space, from the
     built candidate count: exact once built) equal those the build allocates; the sample's
     estimate of the candidates is within a factor of the truth (an estimate: said so)."""
-    scene = load_scene("cornell")
+    scene = load_scene(scene_name)
     params = BuildParams(resolution=resolution, ls_n=n, ls_min_candidates=k)
     built = backends.build(device, structure, scene, params)
     try:
@@ -270,6 +273,39 @@ def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tm
     assert main(["fit", "--check", str(out)]) == 0
     table = capsys.readouterr().out
     assert "auto/best" in table and "cornell  grid" in table
+
+
+def test_fit_check_compares_x_embree_where_every_case_timed_embree():
+    """Cases run one after another on a shared machine: the best swept case and the auto/best ratio
+    come from x Embree (the ratio in one worker), not from raw rays/s; the choose share is the
+    choice's seconds over the sweep's wall time."""
+    from lsbench.model.check import check_rows
+
+    def rec(res, rays, embree, **kw):
+        return dict(scene="s", rays="primary", structure="grid", backend="opencl", budget_mib=64, status="ok",
+                    resolution_x=res, resolution_y=res, resolution_z=res, rays_per_second=rays,
+                    embree_rays_per_second=embree, memory_bytes=2**20, wall_seconds=10.0, key=f"s|grid|r{res}", **kw)
+
+    swept = [rec(32, 2e6, 8e6), rec(64, 3e6, 20e6)]  # 64^3 is faster in rays/s, ran while the machine was busier
+    auto = rec(32, 1.5e6, 6e6, auto={"choose_seconds": 1.0})
+    auto["key"] = "s|grid|rauto"
+    (row,) = check_rows(swept + [auto])
+    assert row.best_setting == "32" and row.best_x_embree == pytest.approx(0.25)
+    assert row.auto_x_embree == pytest.approx(0.25) and row.ratio == pytest.approx(1.0) and row.same_setting
+    assert row.choose_share == pytest.approx(1.0 / 20.0)
+    del swept[0]["embree_rays_per_second"]  # one case without Embree's timing: rays/s for all
+    (row,) = check_rows(swept + [auto])
+    assert row.best_setting == "64" and row.auto_x_embree is None and row.ratio == pytest.approx(0.5)
+
+
+def test_auto_octrees_try_every_level_whose_box_fits_not_the_cube():
+    """A flat scene's box in the 512^3 cube has 512 x 6 x 512 voxels, so 512^3 is tried though the
+    cube's 2^27 voxels are over GRID_MAX_VOXELS; a cubic scene's 512^3 is not."""
+    from lsbench.model.cost import GRID_MAX_VOXELS, octree_resolutions
+
+    flat = octree_resolutions((-50, -0.5, -50), (50, 0.5, 50), GRID_MAX_VOXELS)
+    cubic = octree_resolutions((-1, -1, -1), (1, 1, 1), GRID_MAX_VOXELS)
+    assert flat[-1] == (512,) * 3 and cubic[-1] == (256,) * 3 and len(flat) == len(cubic) + 1
 
 
 def test_a_dense_cell_gets_its_line_space_on_llvmpipe_too():

@@ -42,8 +42,9 @@ def setup_arguments(sub) -> None:
                    help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")
     p.add_argument("--json", action="store_true", help="print the stored constants as JSON")
     p.add_argument("--check", metavar="RUN_DIR",
-                   help="calibrate nothing: print the fit check of a run of scenarios/fit-check.toml (each auto "
-                        "case beside the best swept setting under the same budget, lsbench/model/check.py)")
+                   help="calibrate nothing: print the fit check of a run of scenarios/fit-check.toml or "
+                        "fit-thesis.toml (each auto case beside the best swept setting under the same budget, "
+                        "lsbench/model/check.py)")
     p.set_defaults(func=run)
 
 
@@ -127,7 +128,7 @@ def print_check(run_dir: str) -> int:
         raise UsageError(f"--check: {exc}") from None
     rows = check_rows(records)
     if not rows:
-        say(f"{run_dir}: no auto case (run scenarios/fit-check.toml into it)")
+        say(f"{run_dir}: no auto case (run scenarios/fit-check.toml or fit-thesis.toml into it)")
         return 1
     for line in check_table(rows):
         say(line)

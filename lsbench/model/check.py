@@ -1,7 +1,11 @@
 """The fit check (issue 17, scenarios/fit-check.toml): each auto case beside the best ok case of
 the fixed settings swept for the same scene, rays, structure, backend and budget (a swept case over
 the budget failed, so the best ok one is the best that fits), and the time the choice took beside
-the sweep's."""
+the sweep's.
+
+Speed is compared as x Embree (rays/s over Embree's on the same rays in the same worker) where
+every case of the group timed Embree: cases run one after another on a shared machine, and the
+ratio in one process is what cancels the load between them; otherwise as rays/s."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -23,6 +27,15 @@ class CheckRow:
     choose_seconds: float | None
     sweep_seconds: float  # wall time of the swept cases, failed ones included
     swept: int
+    auto_x_embree: float | None = None  # rays/s over Embree's in the same worker (None: not timed)
+    best_x_embree: float | None = None
+
+    @property
+    def choose_share(self) -> float | None:
+        """The seconds the choice took over the sweep's wall time."""
+        if self.choose_seconds is None or not self.sweep_seconds:
+            return None
+        return self.choose_seconds / self.sweep_seconds
 
     @property
     def same_setting(self) -> bool:
@@ -31,10 +44,18 @@ class CheckRow:
 
     @property
     def ratio(self) -> float | None:
-        """Auto rays/s over the best swept rays/s (1.0 = as fast)."""
+        """Auto over the best swept (1.0 = as fast): x Embree where both have it, else rays/s."""
+        if self.auto_x_embree is not None and self.best_x_embree:
+            return self.auto_x_embree / self.best_x_embree
         if self.auto_rays_per_second is None or not self.best_rays_per_second:
             return None
         return self.auto_rays_per_second / self.best_rays_per_second
+
+
+def x_embree(rec: dict) -> float | None:
+    """rays/s over Embree's rays/s in the same worker, or None where Embree was not timed."""
+    embree = rec.get("embree_rays_per_second")
+    return rec["rays_per_second"] / embree if embree and rec.get("rays_per_second") else None
 
 
 def setting_text(rec: dict) -> str:
@@ -61,8 +82,9 @@ def check_rows(records: list[dict]) -> list[CheckRow]:
             continue
         others = swept.get(group(r), [])
         ok = [o for o in others if o.get("status") == "ok" and o.get("rays_per_second")]
-        best = max(ok, key=lambda o: o["rays_per_second"]) if ok else None
         auto_ok = r.get("status") == "ok"
+        by_embree = all(x_embree(o) is not None for o in ok + ([r] if auto_ok else []))
+        best = max(ok, key=x_embree if by_embree else (lambda o: o["rays_per_second"])) if ok else None
         predicted = r.get("predicted") or {}
         rows.append(CheckRow(
             r.get("scene"), r.get("structure"), r.get("backend"), r.get("budget_mib"), setting_text(r),
@@ -71,7 +93,8 @@ def check_rows(records: list[dict]) -> list[CheckRow]:
             predicted.get("rays_per_second"), setting_text(best) if best else None,
             best["rays_per_second"] if best else None, best["memory_bytes"] / 2**20 if best else None,
             (r.get("auto") or {}).get("choose_seconds"),
-            sum(o.get("wall_seconds") or 0.0 for o in others), len(others)))
+            sum(o.get("wall_seconds") or 0.0 for o in others), len(others),
+            x_embree(r) if auto_ok and by_embree else None, x_embree(best) if best and by_embree else None))
     return rows
 
 
@@ -81,14 +104,15 @@ def check_table(rows: list[CheckRow]) -> list[str]:
     def num(v, fmt):
         return "-" if v is None else format(v, fmt)
 
-    header = ("scene", "structure", "backend", "budget MiB", "auto setting", "auto Mrays/s", "auto MiB",
-              "predicted Mrays/s", "best swept", "best Mrays/s", "best MiB", "auto/best", "same", "choose s",
-              "sweep s")
+    header = ("scene", "structure", "backend", "budget MiB", "auto setting", "auto Mrays/s", "auto x Embree",
+              "auto MiB", "predicted Mrays/s", "best swept", "best Mrays/s", "best x Embree", "best MiB",
+              "auto/best", "same", "choose s", "sweep s", "choose/sweep")
     body = [(r.scene, r.structure, r.backend, num(r.budget_mib, "g"), r.auto_setting,
-             num(r.auto_rays_per_second and r.auto_rays_per_second / 1e6, ".3f"), num(r.auto_mib, ".1f"),
-             num(r.predicted_rays_per_second and r.predicted_rays_per_second / 1e6, ".3f"),
+             num(r.auto_rays_per_second and r.auto_rays_per_second / 1e6, ".3f"), num(r.auto_x_embree, ".3f"),
+             num(r.auto_mib, ".1f"), num(r.predicted_rays_per_second and r.predicted_rays_per_second / 1e6, ".3f"),
              r.best_setting or "-", num(r.best_rays_per_second and r.best_rays_per_second / 1e6, ".3f"),
-             num(r.best_mib, ".1f"), num(r.ratio, ".2f"), "=" if r.same_setting else "",
-             num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}")
+             num(r.best_x_embree, ".3f"), num(r.best_mib, ".1f"), num(r.ratio, ".2f"), "=" if r.same_setting else "",
+             num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}",
+             "-" if r.choose_share is None else f"{100 * r.choose_share:.1f} %")
             for r in rows]
-    return text_table(header, body, right={3, 5, 6, 7, 9, 10, 11, 13, 14})
+    return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17})

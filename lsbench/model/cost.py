@@ -40,8 +40,10 @@ from lsbench.model.stats import LineSpaceSample, VoxelCounts
 
 GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 OCTREE_LEVELS = tuple(range(3, 10))  # 8^3 .. 512^3, those whose box has at most the voxels allowed
-LS_MAX_VOXELS = 2**21  # Line Space settings tried: at most 128^3 cells (15 N^4 shafts each)
-GRID_MAX_VOXELS = 2**24
+LS_MAX_VOXELS = 2**23  # Line Space settings tried: at most 8 M cells in the box (15 N^4 shafts each)
+# Grid and octree settings tried: at most this many voxels in the scene's box, and no more than
+# the device's largest buffer holds as the build's dense offsets (4 bytes per voxel, grid.h).
+GRID_MAX_VOXELS = 2**26
 AUTO_NS = (1, 2, 3, 4)
 AUTO_KS = (0, 2, 4, 8, 16, 32, 64)
 RAY_SAMPLE = 512  # rays of the case walked per setting
@@ -335,7 +337,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     t_start = time.perf_counter()
     info = STRUCTURES[structure]
     constants = constants or load_constants(device)
-    limit = LS_MAX_VOXELS if info.line_space else GRID_MAX_VOXELS
+    limit = LS_MAX_VOXELS if info.line_space else min(GRID_MAX_VOXELS, device.max_buffer_bytes // 4 - 1)
     if resolution == "auto":
         lo, hi = scene.bounds
         resolutions = (octree_resolutions(lo, hi, limit) if info.cubic_power_of_two
