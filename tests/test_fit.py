@@ -308,6 +308,43 @@ def test_auto_octrees_try_every_level_whose_box_fits_not_the_cube():
     assert flat[-1] == (512,) * 3 and cubic[-1] == (256,) * 3 and len(flat) == len(cubic) + 1
 
 
+@pytest.mark.parametrize("times,cheapest", [
+    ([9, 7, 5, 4, 3, 2, 1], 6),  # finest is cheapest: up from the middle
+    ([1, 2, 3, 4, 5, 6, 7], 0),  # coarsest: down from the middle
+    ([5, 4, 3, 2, 3, 4, 5], 3),
+    ([9, 8, 6, 5, 7, math.inf, math.inf], 3),  # the finest are over the budget
+    ([3, 2, 1, math.inf, math.inf, math.inf, math.inf], 2),  # down from over the budget until one fits
+    ([math.inf] * 7, None)])  # nothing fits: every coarser one is tried, down to the smallest
+def test_resolution_walk_finds_the_cheapest_of_a_unimodal_time(times, cheapest):
+    from lsbench.model.cost import resolution_walk
+
+    visited = resolution_walk(len(times), lambda i: times[i])
+    assert len(set(visited)) == len(visited)
+    best = min(visited, key=lambda i: times[i])
+    assert (best if math.isfinite(times[best]) else None) == cheapest
+    assert len(visited) < len(times) or cheapest is None or cheapest in (0, len(times) - 1)
+    if cheapest is None:
+        assert 0 in visited
+    assert resolution_walk(len(times), lambda i: times[i], exhaustive=True) == list(range(len(times)))
+
+
+@pytest.mark.parametrize("structure,scene_name,budget_mib", [
+    ("grid", "spheres", None), ("svo", "atrium", None), ("esvo", "spheres", 1.0)])
+def test_auto_walk_chooses_what_trying_every_resolution_chooses(structure, scene_name, budget_mib):
+    """The walk over the resolutions (cost.resolution_walk) picks the same setting as predicting
+    all of them, with fewer count passes."""
+    from lsbench.model.cost import choose, ray_sample
+
+    device = backends.get_device("opencl")
+    scene = load_scene(scene_name)
+    rays, hit_t = _rays_and_truth(scene)
+    budget = None if budget_mib is None else int(budget_mib * 2**20)
+    walked = choose(device, structure, scene, ray_sample(rays, hit_t), budget_bytes=budget)
+    every = choose(device, structure, scene, ray_sample(rays, hit_t), budget_bytes=budget, exhaustive=True)
+    assert walked.chosen is not None and walked.chosen == every.chosen
+    assert len(walked.options) < len(every.options)
+
+
 def test_a_dense_cell_gets_its_line_space_on_llvmpipe_too():
     """llvmpipe cuts the loops of an invocation after 65535 iterations (test_grid.py); the Line
     Space count and fill run in chunks of candidates (linespace.py: candidate_chunk), so a cell of

@@ -99,7 +99,8 @@ def test_levels_and_leaves_equal_reference(device, structure, scene_name, res):
     offsets, ref_tris = device_voxel_lists(built)
     counts = np.diff(offsets)
     occupied = np.zeros((res,) * 3, bool)
-    occupied[: box[0], : box[1], : box[2]] = (counts > 0).reshape(box[::-1]).transpose(2, 1, 0)  # voxel = x + Rx (y + Ry z)
+    # voxel = x + Rx (y + Ry z)
+    occupied[: box[0], : box[1], : box[2]] = (counts > 0).reshape(box[::-1]).transpose(2, 1, 0)
     want = reference_levels(occupied, depth)
     got, leaf_of = decode(built)
 

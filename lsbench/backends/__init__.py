@@ -53,8 +53,10 @@ def structure_names() -> list[str]:
     return list(STRUCTURES)
 
 
-def geometry_for(structure: str, scene, params: BuildParams) -> GridGeometry:
-    lo, hi = scene.bounds
+def geometry_for(structure: str, scene, params: BuildParams, bounds=None) -> GridGeometry:
+    """The grid geometry `structure` builds over `scene` (bounds: scene.bounds, when the caller
+    has them already: they cost a pass over the faces)."""
+    lo, hi = scene.bounds if bounds is None else bounds
     cubic = structure_info(structure).cubic_power_of_two or params.bounding_cube
     return GridGeometry.over_bounds(lo, hi, params.resolution, cubic=cubic)
 

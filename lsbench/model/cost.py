@@ -208,8 +208,10 @@ def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndar
                 lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
                 _, level_cells = crossed_cells(lo, lc, enter, leave, (2**level,) * 3)
                 r = 2**level
-                x, y, z = level_cells % r, (level_cells // r) % r, level_cells // (r * r)
-                iterations += int(np.count_nonzero(levels[level - 1][z // 2, y // 2, x // 2]))
+                x, y, z = level_cells % r // 2, (level_cells // r) % r // 2, level_cells // (r * r) // 2
+                parents = levels[level - 1]  # over the box only: a parent past it is empty
+                inside = (z < parents.shape[0]) & (y < parents.shape[1]) & (x < parents.shape[2])
+                iterations += int(np.count_nonzero(parents[z[inside], y[inside], x[inside]]))
         counts.walks[key] = (ray_ids, cells, iterations)
     return counts.walks[key]
 
@@ -325,11 +327,53 @@ class Choice:
                 "choose_seconds": self.seconds, "constants": self.constants_source}
 
 
+def _best_seconds(new: list[Option], options: list[Option]) -> float:
+    """Adds `new` to `options`; the predicted seconds per ray of the cheapest that fits (inf: none)."""
+    options.extend(new)
+    return min((o.seconds_per_ray for o in new if o.fits), default=math.inf)
+
+
+def resolution_walk(count: int, seconds, exhaustive: bool = False) -> list[int]:
+    """The indices of the resolutions (ascending) whose options were predicted, in the order
+    visited; seconds(i) predicts them and gives the cheapest fitting time at i (inf: none fits).
+
+    The predicted time of a structure is unimodal in its resolution (finer cells: more steps,
+    fewer tests; Ize, Shirley & Parker 2007), and bytes only grow with it. So the walk starts in
+    the middle and goes the way the time falls (down where nothing fits) until it rises again:
+    the cheapest is found with a few count passes instead of one per resolution. exhaustive:
+    every index (what tests compare the walk with)."""
+    visited: list[int] = []
+
+    def at(i: int) -> float:
+        visited.append(i)
+        return seconds(i)
+
+    if exhaustive or count <= 2:
+        for i in range(count):
+            at(i)
+        return visited
+    i = count // 2
+    best, t_up = at(i), at(i + 1)
+    if t_up < best:  # finer is cheaper: up while the time falls
+        best, i = t_up, i + 1
+        while i + 1 < count and (t := at(i + 1)) < best:
+            best, i = t, i + 1
+        return visited
+    while i > 0:  # coarser: down while the time falls, or until one fits
+        t = at(i - 1)
+        if math.isfinite(best) and not t < best:
+            break
+        best, i = min(best, t), i - 1
+    return visited
+
+
 def choose(device, structure: str, scene, sample: RaySample, resolution="auto", ls_n="auto",
-           ls_min_candidates="auto", budget_bytes: int | None = None, constants=None) -> Choice:
+           ls_min_candidates="auto", budget_bytes: int | None = None, constants=None,
+           exhaustive: bool = False) -> Choice:
     """The cheapest setting of `structure` on `scene` that fits `budget_bytes` (None: no budget),
     each "auto" parameter tried over its candidates, the others as given. Statistics are measured
-    on `device` (count passes, Line Space samples), the scene uploaded once for them."""
+    on `device` (count passes, Line Space samples), the scene uploaded once for them. The
+    resolutions are walked from the middle of the list (resolution_walk); exhaustive: all of them."""
     from lsbench import backends
     from lsbench.backends.structures.base import BuildParams, parse_resolution
     from lsbench.model.stats import line_space_samples, voxel_counts
@@ -338,8 +382,8 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     info = STRUCTURES[structure]
     constants = constants or load_constants(device)
     limit = LS_MAX_VOXELS if info.line_space else min(GRID_MAX_VOXELS, device.max_buffer_bytes // 4 - 1)
+    lo, hi = scene.bounds
     if resolution == "auto":
-        lo, hi = scene.bounds
         resolutions = (octree_resolutions(lo, hi, limit) if info.cubic_power_of_two
                        else grid_resolutions(lo, hi, scene.triangle_count, limit))
     else:
@@ -350,25 +394,28 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
             "faces": device.upload("model_faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
     options: list[Option] = []
     counts_of: dict = {}
+
+    def options_at(res) -> list[Option]:
+        geometry = backends.geometry_for(structure, scene, BuildParams(resolution=res), bounds=(lo, hi))
+        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        counts_of[res] = counts
+        if not info.line_space:
+            return [_option(device, structure, counts, sample, res, 0, 0, None, budget_bytes, constants)]
+        # Line Space samples only for the N whose offsets alone (at the largest K) may fit.
+        wanted = [n for n in ns if budget_bytes is None or _offsets_bytes(counts, n, max(ks)) <= budget_bytes]
+        samples = line_space_samples(device, bufs, scene.triangle_count, geometry, counts, wanted) if wanted else {}
+        densest = int(counts.counts.max(initial=0))
+        out = []
+        for n in ns:
+            # Every K at or over the densest cell's count builds no Line Space at all: one of them is tried.
+            tried = [k for k in ks if k < densest] + [k for k in ks if k >= densest][:1]
+            for k in tried:
+                out.append(_option(device, structure, counts, sample, res, n, k, samples.get(n), budget_bytes,
+                                   constants))
+        return out
+
     try:
-        for res in resolutions:
-            geometry = backends.geometry_for(structure, scene, BuildParams(resolution=res))
-            counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
-            counts_of[res] = counts
-            if not info.line_space:
-                options.append(_option(device, structure, counts, sample, res, 0, 0, None, budget_bytes, constants))
-                continue
-            # Line Space samples only for the N whose offsets alone (at the largest K) may fit.
-            wanted = [n for n in ns if budget_bytes is None or
-                      _offsets_bytes(counts, n, max(ks)) <= budget_bytes]
-            samples = line_space_samples(device, bufs, scene.triangle_count, geometry, counts, wanted) if wanted else {}
-            densest = int(counts.counts.max(initial=0))
-            for n in ns:
-                # Every K at or over the densest cell's count builds no Line Space at all: one of them is tried.
-                tried = [k for k in ks if k < densest] + [k for k in ks if k >= densest][:1]
-                for k in tried:
-                    options.append(_option(device, structure, counts, sample, res, n, k, samples.get(n),
-                                           budget_bytes, constants))
+        resolution_walk(len(resolutions), lambda i: _best_seconds(options_at(resolutions[i]), options), exhaustive)
     finally:
         for b in bufs.values():
             device.release(b)

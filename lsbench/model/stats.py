@@ -62,17 +62,18 @@ class VoxelCounts:
 
     def occupancy_levels(self) -> list[np.ndarray]:
         """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
-        boolean (z, y, x) arrays, level l of 2^l cells per axis; a cell is non-empty when one of
-        its 8 children is (svo.py's flag pyramid). The counts cover the scene's box; the cube's
-        cells past it are empty (GridGeometry.over_bounds, cubic)."""
+        boolean (z, y, x) arrays; a cell is non-empty when one of its 8 children is (svo.py's flag
+        pyramid). The counts cover the scene's box (GridGeometry.over_bounds, cubic), so level l
+        holds only the cells of its 2^l per axis over the box, ceil(box / 2^(depth - l)); the
+        cube's cells past them are empty."""
         cube = self.geometry.cube or self.counts.shape[0]
-        occ = np.zeros((cube,) * 3, bool)
-        rz, ry, rx = self.counts.shape
-        occ[:rz, :ry, :rx] = self.counts > 0
+        occ = self.counts > 0
         levels = [occ]
-        while occ.shape[0] > 1:
-            r = occ.shape[0] // 2
-            occ = occ.reshape(r, 2, r, 2, r, 2).any(axis=(1, 3, 5))
+        for _ in range(cube.bit_length() - 1):
+            box = tuple(-(-n // 2) for n in occ.shape)  # the level above: half, rounded up
+            padded = np.zeros(tuple(2 * n for n in box), bool)
+            padded[: occ.shape[0], : occ.shape[1], : occ.shape[2]] = occ
+            occ = padded.reshape(box[0], 2, box[1], 2, box[2], 2).any(axis=(1, 3, 5))
             levels.append(occ)
         return levels[::-1]
 

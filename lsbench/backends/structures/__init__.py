@@ -18,7 +18,7 @@ from .octree_ls import esvo_ls, svo_ls
 class StructureInfo:
     name: str
     recipe: object  # module or object with prepare() and build()
-    cubic_power_of_two: bool  # octrees: a cubic power-of-two resolution over the bounding cube
+    cubic_power_of_two: bool  # octrees: cubic power-of-two resolution of the bounding cube (over the scene's box)
     line_space: bool  # takes ls_n / ls_min_candidates
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
     leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none

@@ -25,7 +25,8 @@ INLINE Triangle load_triangle(CTX_PARAM uint tri) {
 // Every structure lays its cells over the scene in grid space: p' = (p - grid_origin) *
 // grid_inv_voxel, so voxel (i,j,k) is the unit cube [i,i+1]x[j,j+1]x[k,k+1] and voxel index =
 // i + rx*(j + ry*k). Affine maps keep the ray parameter, so a t found in grid space is the world
-// distance along the unit direction. The octrees use the bounding cube (Delgado Kraemer 2019, 3.3.2, 5.2.1).
+// distance along the unit direction. The octrees use the bounding cube's cubic voxels (Delgado
+// Kraemer 2019, 3.3.2, 5.2.1), anchored at grid_origin, with grid_res the scene's box in them (octree.h).
 INLINE float3 to_grid(CTX_PARAM float3 p) {
     return (p - V(grid_origin).xyz) * V(grid_inv_voxel).xyz;
 }
