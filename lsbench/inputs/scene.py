@@ -53,7 +53,9 @@ class Scene:
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Bounds of the referenced vertices (unreferenced vertices do not count)."""
-        used = self.vertices[np.unique(self.faces)]
+        referenced = np.zeros(len(self.vertices), bool)
+        referenced[np.asarray(self.faces).ravel()] = True  # a mask, not np.unique: no sort of 3F ids
+        used = self.vertices[referenced]
         return used.min(axis=0), used.max(axis=0)
 
     @property

@@ -95,7 +95,7 @@ def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
     finally:
         device.release(buf)
     rx, ry, rz = geometry.resolution
-    return VoxelCounts(geometry, counts.reshape(rz, ry, rx).copy())
+    return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # Device.read returns a fresh array
 
 
 @dataclass
