@@ -158,6 +158,33 @@ def test_auto_line_space_case_predicts_its_bytes_and_is_exact_once_built():
     assert rec["predicted"]["memory_bytes_exact"] is False
 
 
+def test_an_auto_line_space_built_over_the_budget_is_rebuilt_at_the_next_that_fits(monkeypatch):
+    """The Line Space's lists are estimated from a sample: here the estimate is made 10x too low,
+    so the setting chosen first comes out over the budget once built. The case does not fail: it
+    builds the cheapest other option that fits with its prediction scaled by the same error, ends
+    within the budget, and the record names the setting that was over it."""
+    from lsbench.model import bytes as model_bytes, cost
+
+    real = model_bytes.predict_bytes
+
+    def low(*args, **kwargs):
+        p = real(*args, **kwargs)
+        if p.exact or "ls_shaft_tris" not in p.buffers:
+            return p
+        return model_bytes.BytesPrediction(dict(p.buffers, ls_shaft_tris=p.buffers["ls_shaft_tris"] // 10), False)
+
+    monkeypatch.setattr(cost, "predict_bytes", low)
+    case, rec = _auto_record("grid-ls", 4.0, scene="spheres", resolution=8, ls_min_candidates=0)
+    assert rec["status"] == "ok", rec["reason"]
+    rebuilt = rec["auto"]["rebuilt_over_budget"]
+    assert 1 <= len(rebuilt) <= cost.AUTO_REBUILDS
+    assert all(r["built_bytes"] > 4 * 2**20 > r["predicted_bytes"] for r in rebuilt)
+    assert rec["memory_bytes"] <= 4 * 2**20
+    chosen = rec["auto"]["chosen"]
+    assert (chosen["ls_n"], chosen["resolution"]) == (rec["ls_n"], "8x8x8")
+    assert all(r["ls_n"] != chosen["ls_n"] for r in rebuilt)
+
+
 @pytest.mark.parametrize("structure,resolution,n", [("grid", "32", 0), ("esvo", "16", 0), ("grid-ls", "8", 2)])
 def test_a_structure_over_the_budget_fails_before_its_build_naming_both_sizes(structure, resolution, n):
     """A fixed setting over the budget fails without a build: its bytes from the count pass (exact

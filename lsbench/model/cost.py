@@ -46,6 +46,7 @@ LS_MAX_VOXELS = 2**23  # Line Space settings tried: at most 8 M cells in the box
 GRID_MAX_VOXELS = 2**26
 AUTO_NS = (1, 2, 3, 4)
 AUTO_KS = (0, 2, 4, 8, 16, 32, 64)
+AUTO_REBUILDS = 2  # an auto Line Space built over the budget is rebuilt at most this often (Choice)
 RAY_SAMPLE = 2048  # rays of the case walked per setting (jittered: ray_sample)
 RUNNERS_UP = 5  # options kept in the record besides the chosen one
 
@@ -288,6 +289,27 @@ class Choice:
     constants_source: str
     requested: dict = field(default_factory=dict)
     chosen_counts: VoxelCounts | None = None  # the chosen resolution's statistics (exact bytes once built)
+    counts_of: dict = field(default_factory=dict, repr=False)  # resolution -> VoxelCounts of every one visited
+    rebuilt: list = field(default_factory=list)  # chosen options whose built structure was over the budget
+
+    def next_after_overshoot(self, built_bytes: int, build_seconds: float) -> bool:
+        """The chosen Line Space setting was built over the budget (its shaft lists are estimated
+        from a sample: tens of percent off): take the cheapest other option that fits once its
+        prediction is scaled by the same error. False when there is none, or after
+        AUTO_REBUILDS such rebuilds (the case then fails over the budget, naming them)."""
+        failed = self.chosen
+        self.rebuilt.append(dict(failed.summary(), built_bytes=int(built_bytes), build_seconds=build_seconds))
+        if self.budget_bytes is None or len(self.rebuilt) > AUTO_REBUILDS:
+            return False
+        scale = built_bytes / max(failed.bytes.total, 1)
+        tried = {(r["resolution"], r["ls_n"], r["ls_min_candidates"]) for r in self.rebuilt}
+        left = [o for o in self.options if o.fits and o.bytes.total * max(scale, 1.0) <= self.budget_bytes
+                and (o.summary()["resolution"], o.ls_n, o.ls_min_candidates) not in tried]
+        if not left:
+            return False
+        self.chosen = min(left, key=lambda o: o.seconds_per_ray)
+        self.chosen_counts = self.counts_of.get(self.chosen.resolution)
+        return True
 
     def no_fit_reason(self, budget_mib: float | None) -> str:
         """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried, or
@@ -331,7 +353,8 @@ class Choice:
                 "runners_up": runners, "options": len(self.options),
                 "options_over_budget": sum(not o.fits and not o.limit for o in self.options),
                 "options_over_device_limits": sum(bool(o.limit) for o in self.options),
-                "choose_seconds": self.seconds, "constants": self.constants_source}
+                "choose_seconds": self.seconds, "constants": self.constants_source,
+                "rebuilt_over_budget": self.rebuilt}
 
 
 def _best_seconds(new: list[Option], options: list[Option]) -> float:
@@ -430,7 +453,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     chosen = min(fitting, key=lambda o: o.seconds_per_ray) if fitting else None
     requested = {"resolution": resolution, "ls_n": ls_n, "ls_min_candidates": ls_min_candidates}
     return Choice(structure, chosen, options, budget_bytes, time.perf_counter() - t_start,
-                  constants.source, requested, counts_of[chosen.resolution] if chosen else None)
+                  constants.source, requested, counts_of[chosen.resolution] if chosen else None, counts_of)
 
 
 def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):

@@ -124,13 +124,25 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
                     f"the structure needs {'' if exact else 'at least '}{at_least / 2**20:.1f} MiB (predicted from "
                     f"the count pass, not built), over the device-memory budget of {budget:g} MiB (budget_mib, --budget)")
         built = backends.build(device, case.structure, scene, params)
+        while (choice is not None and budget_bytes is not None and built.memory_bytes > budget_bytes
+               and choice.next_after_overshoot(built.memory_bytes, built.build_seconds)):
+            # The chosen Line Space's estimated lists came out over the budget: the next that fits.
+            built.release()
+            built = None
+            params = choice.params()
+            rec.update(auto=choice.record(), resolution_x=params.resolution[0], resolution_y=params.resolution[1],
+                       resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+            built = backends.build(device, case.structure, scene, params)
+        if choice is not None:
+            rec.update(auto=choice.record())
         rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
                    buffers=built.memory(), stats=built.stats)
         if choice is not None:
             rec.update(predicted=choice.predicted(device, built))
         if budget_bytes is not None and built.memory_bytes > budget_bytes:
+            again = f" (auto: {len(choice.rebuilt)} chosen settings built over it)" if choice is not None else ""
             raise DeviceLimitError(f"the structure takes {built.memory_bytes / 2**20:.1f} MiB, over the "
-                                   f"device-memory budget of {budget:g} MiB (budget_mib, --budget)")
+                                   f"device-memory budget of {budget:g} MiB (budget_mib, --budget){again}")
         hits = backends.trace(built, rays)
         rec.update(trace_slices=hits.slices, slice_budget=hits.slice_budget)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
