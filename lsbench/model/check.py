@@ -3,9 +3,12 @@ the fixed settings swept for the same scene, rays, structure, backend and budget
 the budget failed, so the best ok one is the best that fits), and the time the choice took beside
 the sweep's.
 
-Speed is compared as x Embree (rays/s over Embree's on the same rays in the same worker) where
-every case of the group timed Embree: cases run one after another on a shared machine, and the
-ratio in one process is what cancels the load between them; otherwise as rays/s."""
+Speed is compared in rays/s (the best swept case is the fastest). Where every case of the group
+timed Embree, x Embree (rays/s over Embree's on the same rays in the same worker) and its ratio are
+shown beside it: under a load that changes between the cases the ratio in one process cancels
+some of it, but on llvmpipe Embree's own rate also swings with what the driver's threads still do
+(atrium, svo 256^3 run twice in a row on an idle machine: 0.97 and 0.96 Mrays/s, 0.076x and
+0.134x Embree), so neither alone decides."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -44,12 +47,17 @@ class CheckRow:
 
     @property
     def ratio(self) -> float | None:
-        """Auto over the best swept (1.0 = as fast): x Embree where both have it, else rays/s."""
-        if self.auto_x_embree is not None and self.best_x_embree:
-            return self.auto_x_embree / self.best_x_embree
+        """Auto rays/s over the best swept rays/s (1.0 = as fast)."""
         if self.auto_rays_per_second is None or not self.best_rays_per_second:
             return None
         return self.auto_rays_per_second / self.best_rays_per_second
+
+    @property
+    def ratio_x_embree(self) -> float | None:
+        """The same as x Embree (None where a case did not time Embree)."""
+        if self.auto_x_embree is None or not self.best_x_embree:
+            return None
+        return self.auto_x_embree / self.best_x_embree
 
 
 def x_embree(rec: dict) -> float | None:
@@ -84,7 +92,7 @@ def check_rows(records: list[dict]) -> list[CheckRow]:
         ok = [o for o in others if o.get("status") == "ok" and o.get("rays_per_second")]
         auto_ok = r.get("status") == "ok"
         by_embree = all(x_embree(o) is not None for o in ok + ([r] if auto_ok else []))
-        best = max(ok, key=x_embree if by_embree else (lambda o: o["rays_per_second"])) if ok else None
+        best = max(ok, key=lambda o: o["rays_per_second"]) if ok else None
         predicted = r.get("predicted") or {}
         rows.append(CheckRow(
             r.get("scene"), r.get("structure"), r.get("backend"), r.get("budget_mib"), setting_text(r),
@@ -106,13 +114,13 @@ def check_table(rows: list[CheckRow]) -> list[str]:
 
     header = ("scene", "structure", "backend", "budget MiB", "auto setting", "auto Mrays/s", "auto x Embree",
               "auto MiB", "predicted Mrays/s", "best swept", "best Mrays/s", "best x Embree", "best MiB",
-              "auto/best", "same", "choose s", "sweep s", "choose/sweep")
+              "auto/best", "same", "x Embree auto/best", "choose s", "sweep s", "choose/sweep")
     body = [(r.scene, r.structure, r.backend, num(r.budget_mib, "g"), r.auto_setting,
              num(r.auto_rays_per_second and r.auto_rays_per_second / 1e6, ".3f"), num(r.auto_x_embree, ".3f"),
              num(r.auto_mib, ".1f"), num(r.predicted_rays_per_second and r.predicted_rays_per_second / 1e6, ".3f"),
              r.best_setting or "-", num(r.best_rays_per_second and r.best_rays_per_second / 1e6, ".3f"),
              num(r.best_x_embree, ".3f"), num(r.best_mib, ".1f"), num(r.ratio, ".2f"), "=" if r.same_setting else "",
-             num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}",
+             num(r.ratio_x_embree, ".2f"), num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}",
              "-" if r.choose_share is None else f"{100 * r.choose_share:.1f} %")
             for r in rows]
-    return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17})
+    return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17, 18})

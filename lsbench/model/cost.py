@@ -246,6 +246,14 @@ def grid_resolutions(lo, hi, triangles: int, max_voxels: int) -> list[tuple[int,
     return out
 
 
+def cubic_count_resolutions(max_voxels: int) -> list[tuple[int, int, int]]:
+    """R x R x R cells over the scene's box for R in 2^OCTREE_LEVELS (the thesis' grids, 3.3.1):
+    on a non-cubic scene their cells are stretched along its long axes, which can cross fewer cells
+    per ray than the cubic cells of grid_resolutions (Sponza from inside: 128^3 took 51 steps and
+    54 tests per ray, 206 x 86 x 126 cubic cells 60 and 58)."""
+    return [(2**level,) * 3 for level in OCTREE_LEVELS if 8**level <= max_voxels]
+
+
 def octree_resolutions(lo, hi, max_voxels: int) -> list[tuple[int, int, int]]:
     """The octree resolutions 2^OCTREE_LEVELS whose voxels over the scene's box [lo, hi] (what the
     count pass and the build cover) are at most max_voxels."""
@@ -357,12 +365,6 @@ class Choice:
                 "rebuilt_over_budget": self.rebuilt}
 
 
-def _best_seconds(new: list[Option], options: list[Option]) -> float:
-    """Adds `new` to `options`; the predicted seconds per ray of the cheapest that fits (inf: none)."""
-    options.extend(new)
-    return min((o.seconds_per_ray for o in new if o.fits), default=math.inf)
-
-
 def resolution_walk(count: int, seconds, exhaustive: bool = False) -> list[int]:
     """The indices of the resolutions (ascending) whose options were predicted, in the order
     visited; seconds(i) predicts them and gives the cheapest fitting time at i (inf: none fits).
@@ -414,10 +416,14 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     limit = LS_MAX_VOXELS if info.line_space else min(GRID_MAX_VOXELS, device.max_buffer_bytes // 4 - 1)
     lo, hi = scene.bounds
     if resolution == "auto":
-        resolutions = (octree_resolutions(lo, hi, limit) if info.cubic_power_of_two
-                       else grid_resolutions(lo, hi, scene.triangle_count, limit))
+        families = [octree_resolutions(lo, hi, limit) if info.cubic_power_of_two
+                    else grid_resolutions(lo, hi, scene.triangle_count, limit)]
+        if not info.cubic_power_of_two and not info.line_space:
+            # A grid's setting costs one count pass to predict: the stretched R^3 grids are walked too.
+            # (A Line Space's costs its sample builds as well, so grid-ls keeps the cubic cells only.)
+            families.append(cubic_count_resolutions(limit))
     else:
-        resolutions = [parse_resolution(resolution)]
+        families = [[parse_resolution(resolution)]]
     ns = (AUTO_NS if ls_n == "auto" else (int(ls_n) or 1,)) if info.line_space else (0,)
     ks = (AUTO_KS if ls_min_candidates == "auto" else (int(ls_min_candidates),)) if info.line_space else (0,)
     bufs = {"vertices": device.upload("model_vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
@@ -444,8 +450,18 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
                                    constants))
         return out
 
+    per_resolution: dict = {}
+
+    def seconds_at(res) -> float:
+        """The cheapest fitting predicted time at `res` (inf: none fits), predicted once."""
+        if res not in per_resolution:
+            per_resolution[res] = options_at(res)
+            options.extend(per_resolution[res])
+        return min((o.seconds_per_ray for o in per_resolution[res] if o.fits), default=math.inf)
+
     try:
-        resolution_walk(len(resolutions), lambda i: _best_seconds(options_at(resolutions[i]), options), exhaustive)
+        for resolutions in families:  # each ordered from coarse to fine: resolution_walk's premise
+            resolution_walk(len(resolutions), lambda i: seconds_at(resolutions[i]), exhaustive)
     finally:
         for b in bufs.values():
             device.release(b)
