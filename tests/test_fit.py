@@ -27,7 +27,7 @@ def _scene_buffers(device, scene):
     ("cornell", "esvo", (8, 8, 8), 0, 0), ("cornell", "grid-ls", (6, 5, 4), 2, 0),
     ("cornell", "grid-ls", (8, 8, 8), 1, 6), ("cornell", "svo-ls", (8, 8, 8), 2, 3),
     ("cornell", "esvo-ls", (8, 8, 8), 1, 0),
-    # non-cubic (a 16 x 9 x 16 box in the 16^3 cube): the octree counts only the box
+    # non-cubic (spheres: a 16 x 7 x 16 box in the 16^3 cube, 8 x 4 x 8 in 8^3): the octree counts only the box
     ("spheres", "svo", (16, 16, 16), 0, 0), ("spheres", "esvo-ls", (8, 8, 8), 1, 2)])
 def test_predicted_bytes_equal_the_built_structure(device, scene_name, structure, resolution, n, k):
     """Every buffer's bytes as predicted from the count pass (and, for a Line Space, from the
