@@ -296,7 +296,6 @@ class Choice:
     seconds: float  # time spent choosing (count passes, Line Space samples, walks)
     constants_source: str
     requested: dict = field(default_factory=dict)
-    chosen_counts: VoxelCounts | None = None  # the chosen resolution's statistics (exact bytes once built)
     counts_of: dict = field(default_factory=dict, repr=False)  # resolution -> VoxelCounts of every one visited
     rebuilt: list = field(default_factory=list)  # chosen options whose built structure was over the budget
 
@@ -316,8 +315,12 @@ class Choice:
         if not left:
             return False
         self.chosen = min(left, key=lambda o: o.seconds_per_ray)
-        self.chosen_counts = self.counts_of.get(self.chosen.resolution)
         return True
+
+    @property
+    def chosen_counts(self) -> VoxelCounts | None:
+        """The chosen resolution's statistics (what makes its bytes exact once built)."""
+        return self.counts_of.get(self.chosen.resolution) if self.chosen else None
 
     def no_fit_reason(self, budget_mib: float | None) -> str:
         """Why nothing was chosen: the budget (as given, in MiB) and the smallest option tried, or
@@ -469,7 +472,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
     chosen = min(fitting, key=lambda o: o.seconds_per_ray) if fitting else None
     requested = {"resolution": resolution, "ls_n": ls_n, "ls_min_candidates": ls_min_candidates}
     return Choice(structure, chosen, options, budget_bytes, time.perf_counter() - t_start,
-                  constants.source, requested, counts_of[chosen.resolution] if chosen else None, counts_of)
+                  constants.source, requested, counts_of)
 
 
 def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):

@@ -75,6 +75,12 @@ def work_fields(work: np.ndarray) -> dict:
     return {f"{name}_per_ray": float(means[i]) for i, name in enumerate(CHANNELS) if name != "clock"}
 
 
+def chosen_fields(params) -> dict:
+    """The record's setting fields of an auto case, as the cost model chose them (BuildParams)."""
+    return dict(resolution_x=params.resolution[0], resolution_y=params.resolution[1],
+                resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+
+
 def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hits: str | None = None,
             heatmap_dir: str | None = None, scene=None, rays=None, truth=None) -> dict:
     """Run one case and return its record (a dict, lsbench.results.record). Driver limits and
@@ -113,8 +119,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
         if params is None:
             raise DeviceLimitError(choice.no_fit_reason(budget))
         if choice is not None:
-            rec.update(resolution_x=params.resolution[0], resolution_y=params.resolution[1],
-                       resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+            rec.update(**chosen_fields(params))
         if budget_bytes is not None and choice is None:
             # A setting that cannot fit fails before its build (a Line Space build can take minutes)
             at_least, exact = bytes_at_least(device, case.structure, scene, params)
@@ -130,8 +135,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             built.release()
             built = None
             params = choice.params()
-            rec.update(auto=choice.record(), resolution_x=params.resolution[0], resolution_y=params.resolution[1],
-                       resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
+            rec.update(**chosen_fields(params), auto=choice.record())
             built = backends.build(device, case.structure, scene, params)
         if choice is not None:
             rec.update(auto=choice.record())
