@@ -354,8 +354,8 @@ def test_min_candidates_keeps_hits_and_saves_memory(device, structure):
         part.release()
         assert st["ls_min_candidates"] == k
         assert st["linespace_skipped_cells"] == st["candidate_cells"] - st["linespace_cells"]
-        # per cell: its first set and 240 16-bit shaft indices, two per word
-        assert st["ls_offsets_bytes_saved"] == 4 * (1 + 120) * st["linespace_skipped_cells"]
+        # per cell: its first set and 240 8-bit shaft indices, four per word
+        assert st["ls_offsets_bytes_saved"] == 4 * (1 + 60) * st["linespace_skipped_cells"]
         if k == 4:
             assert 0 < st["linespace_cells"] < st["candidate_cells"]
             assert part.memory_bytes < full_bytes
@@ -438,7 +438,7 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 32768, 2), (40, 0.1, 8192, 3), (80, 0.12, 8192, 4)])
+@pytest.mark.parametrize("n_tris,size,limit,chunks", [(150, 0.2, 16384, 2), (40, 0.1, 4096, 3), (80, 0.12, 4096, 4)])
 def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structure, n_tris, size, limit, chunks):
     """Shaft offsets past the per-buffer limit are split too (the cells the thesis could not run,
     Sponza N=3 at 256^3, had 2.5 GiB of offsets in the one-list-per-shaft layout): the split

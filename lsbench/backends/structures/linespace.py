@@ -11,7 +11,7 @@ box (grid space, see shaders/common/grid.h) plus a range of a triangle-id list:
         references : sum of the cells' list lengths (an upper bound is fine: it only decides
                      whether the 32-bit overflow check has to run)
     ls = build_linespaces(device, scene_buffers, geometry, cells, n)
-    ls.buffers -> {"ls_shaft_offsets": header, per-cell first sets, 16-bit shaft -> set indices,
+    ls.buffers -> {"ls_shaft_offsets": header, per-cell first sets, 8/16-bit shaft -> set indices,
                    set offsets; "ls_shaft_tris": the distinct sets' candidate ids}
     ls.stats   -> shafts, non_empty_shafts, candidate_references (all shafts' lists together),
                   ls_sets, ls_set_references (what is stored: one list per distinct set), ...
@@ -406,12 +406,19 @@ class ListSizes:
 
 def offset_entries(cells: int, n: int, sets: int) -> int:
     """Entries of ls_shaft_offsets (layout: shaders/common/linespace.h): per cell its first set and
-    (15 N^4 + 1) / 2 words of 16-bit set indices, then sets + 1 set offsets."""
+    15 N^4 set indices (8 bits, 4 per word, where 15 N^4 <= 256; else 16 bits, 2 per word), then
+    sets + 1 set offsets."""
     return cells * _block_words(shafts_per_cell(n)) + sets + 1
 
 
+def _index_bits(per_cell: int) -> int:
+    """Width of a shaft's set index (linespace.h ls_index_log2): a cell has at most per_cell sets."""
+    return 8 if per_cell <= 256 else 16
+
+
 def _block_words(per_cell: int) -> int:
-    return 1 + (per_cell + 1) // 2
+    per_word = 32 // _index_bits(per_cell)
+    return 1 + -(-per_cell // per_word)
 
 
 def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dict[str, int]:
@@ -657,14 +664,16 @@ def shaft_ranges(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, n
     ls_shaft_offsets as trace.h's shaft_list reads it."""
     words = np.asarray(offset_words, np.int64)
     blocks = _blocks(words, per_cell)
-    packed = blocks[:, 1:]
-    local = np.stack([packed & 0xFFFF, packed >> 16], axis=-1).reshape(len(blocks), -1)[:, :per_cell]
+    packed = blocks[:, 1:, None]
+    bits = _index_bits(per_cell)
+    shifts = bits * np.arange(32 // bits, dtype=np.int64)
+    local = ((packed >> shifts) & ((1 << bits) - 1)).reshape(len(blocks), -1)[:, :per_cell]
     sets = (blocks[:, :1] + local).ravel()
     return words[sets], words[sets + 1]
 
 
 def _blocks(words: np.ndarray, per_cell: int) -> np.ndarray:
-    """The per-cell blocks (cells, 1 + (per_cell + 1) / 2) of ls_shaft_offsets."""
+    """The per-cell blocks (cells, _block_words(per_cell)) of ls_shaft_offsets."""
     width = _block_words(per_cell)
     cells = int(words[0]) // width if len(words) > 1 else 0  # the first block points just past the blocks
     return words[:cells * width].reshape(cells, width)

@@ -18,12 +18,15 @@
 // Spaces of S = 15 N^4 shafts, one block of B = 1 + (S + 1) / 2 words per Line Space, then the
 // set offsets:
 //   [c B]                   where Line Space c's first set offset is: C B + its first set
-//   [c B + 1 + s / 2]       bits 16 (s & 1) .. +15: shaft s's set, counted from its cell's first
+//   [c B + 1 + s / P]       bits W (s % P) .. +W-1: shaft s's set, counted from its cell's first
 //   [C B + g], g = 0..sets  set g's candidates are ls_shaft_tris[[C B + g] .. [C B + g + 1])
 // so a lookup (trace.h: shaft_list) reads two words of one block and a set's two offsets. A cell's
-// sets number at most its S shafts, so 16 bits hold N <= 8. The sets of a cell are numbered in the
-// order of their first shaft; each lists its triangles in the cell's list order, as the
-// one-list-per-shaft layout before it did.
+// sets number at most its S shafts, so the index width W is the narrowest of 8 and 16 bits that
+// holds S: 8 bits (P = 4 per word) for N <= 2 (S <= 240), 16 bits (P = 2) for N = 3..8; then
+// B = 1 + ceil(S / P). (At N = 2 the 8-bit indices take the block from 121 to 61 words, the
+// difference between 50.6 % and 44 % of the one-list-per-shaft bytes on Sponza.) The sets of a
+// cell are numbered in the order of their first shaft; each lists its triangles in the cell's list
+// order, as the one-list-per-shaft layout before it did.
 // Both arrays may be split over up to 4 buffers each (linespace.py: SplitArray, when they pass the
 // driver's per-buffer limit). Kernels reach them only through these macros; the defaults below
 // are the one-buffer case, split kernels get generated ones (a chain of chunk compares over
@@ -64,6 +67,23 @@
 
 #define LS_MAX_PLANES 8  // a hull of two face patches has at most 8 facets (brute force, N <= 5)
 #define LS_MAX_POLY 16    // 3 triangle corners + one vertex per clipping plane, with room
+
+// log2 P: how many set indices share a word of a block (layout above), from S = ls_shafts.
+INLINE uint ls_index_log2(uint shafts) {
+    return shafts <= 256u ? 2u : 1u;
+}
+
+// B: the words of one Line Space's block (its first set, then its S set indices, P per word).
+INLINE uint ls_block_words(uint shafts) {
+    uint per = 1u << ls_index_log2(shafts);
+    return 1u + (shafts + per - 1u) / per;
+}
+
+// Shaft s's set index (counted from its cell's first set) out of its block word.
+INLINE uint ls_set_index(uint word, uint shaft, uint log2_per) {
+    uint bits = 32u >> log2_per;
+    return (word >> (bits * (shaft & ((1u << log2_per) - 1u)))) & ((1u << bits) - 1u);
+}
 
 // Block of the unordered face pair (a, b), a < b: row a of faceToBlockMap.
 INLINE uint ls_block(int a, int b) {
@@ -789,16 +809,19 @@ INLINE void ls_dest_kernel(CTX_PARAM uint s) {
 // ---- Build: the Line Spaces' ls_shaft_offsets (layout at the top), one entry per work item ----
 INLINE void ls_layout_kernel(CTX_PARAM uint e) {
     uint shafts = V(ls_shafts);
-    uint block = 1u + (shafts + 1u) / 2u;
+    uint block = ls_block_words(shafts);
     uint set_start = V(ls_cell_end) * block;
     uint v;
     if (e >= set_start) v = LS_SET_LEN(e - set_start);
     else if (e % block == 0u) v = set_start + V(ls_cell_sets)[e / block];
     else {
-        uint pair = 2u * (e % block - 1u);
-        uint s = (e / block) * shafts + pair;
-        v = LS_SHAFT_SET(s) & 0xffffu;
-        if (pair + 1u < shafts) v |= (LS_SHAFT_SET(s + 1u) & 0xffffu) << 16u;
+        uint log2_per = ls_index_log2(shafts);
+        uint bits = 32u >> log2_per;
+        uint first = (e % block - 1u) << log2_per;
+        uint s = (e / block) * shafts + first;
+        v = 0u;
+        for (uint k = 0u; k < (1u << log2_per) && first + k < shafts; k++)
+            v |= (LS_SHAFT_SET(s + k) & ((1u << bits) - 1u)) << (bits * k);
     }
     LS_OFFSET_STORE(e, v);
 }

@@ -283,11 +283,13 @@ INLINE uint cell_line_space(CTX_PARAM uint cell) {
 }
 
 // The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`: its block's
-// first set and the shaft's 16-bit set index, then that set's range (layout: top of linespace.h).
+// first set and the shaft's 8- or 16-bit set index, then that set's range (layout: top of linespace.h).
 INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
-    uint block = ls * (1u + (V(ls_shafts) + 1u) / 2u);
-    uint word = LS_OFFSET(block + 1u + shaft / 2u);
-    uint set = LS_OFFSET(block) + ((word >> (16u * (shaft & 1u))) & 0xffffu);
+    uint shafts = V(ls_shafts);
+    uint log2_per = ls_index_log2(shafts);
+    uint block = ls * ls_block_words(shafts);
+    uint word = LS_OFFSET(block + 1u + (shaft >> log2_per));
+    uint set = LS_OFFSET(block) + ls_set_index(word, shaft, log2_per);
     Candidates c;
     c.begin = LS_OFFSET(set);
     c.end = LS_OFFSET(set + 1u);
