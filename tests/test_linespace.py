@@ -105,7 +105,7 @@ def read_linespaces(built):
     return d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64), offsets, candidates
 
 
-@pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (3, None)])
+@pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (2, "edges"), (3, None), (3, "edges")])
 def test_shaft_candidates_hold_every_triangle_a_shaft_segment_meets(device, monkeypatch, n, test_kind):
     """test_kind: the exact triangle/shaft test (None: the backend's default)."""
     if test_kind is not None:
@@ -113,7 +113,7 @@ def test_shaft_candidates_hold_every_triangle_a_shaft_segment_meets(device, monk
     scene = random_scene()
     res = (3, 3, 2)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
-    default = {"glsl": "sat", "opencl": "clip"}[device.backend]  # Device.line_space_test
+    default = "edges"  # Device.line_space_test, both backends
     assert built.stats["ls_exact_test"] == (test_kind or default)
     ls_ids, offs, cand = read_linespaces(built)
     per_cell = 15 * n**4
@@ -188,7 +188,8 @@ def assert_reference_lists(device, scene, res, n, test_kind, built, delta=1e-4):
     assert inner_total > 100 and border <= 0.01 * inner_total, (inner_total, border)
 
 
-@pytest.mark.parametrize("n,test_kind", [(1, "sat"), (2, "clip"), (2, "sat"), (3, "clip")])
+@pytest.mark.parametrize("n,test_kind", [(1, "sat"), (1, "edges"), (2, "clip"), (2, "sat"), (2, "edges"),
+                                         (3, "clip"), (3, "edges")])
 def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_kind):
     monkeypatch.setenv("LSBENCH_LS_TEST", test_kind)
     scene, res = random_scene(), (3, 3, 2)
@@ -249,7 +250,7 @@ def test_sets_are_confirmed_word_by_word(device, monkeypatch, mask):
 
 
 def exact_kind(device) -> str:
-    return {"glsl": "sat", "opencl": "clip"}[device.backend]  # Device.line_space_test
+    return device.line_space_test
 
 
 def test_cell_past_the_loop_budget(device):
@@ -412,7 +413,10 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     """A candidate list past the per-buffer limit is split over several buffers (up to 4) and
     traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
     # Every other buffer of the case stays under `limit`: the triangle records (48 bytes per
-    # triangle) and the slice state (68 bytes per ray where the trace runs in slices).
+    # triangle) and the slice state (68 bytes per ray where the trace runs in slices). The "edges"
+    # exact test's table of shaft edges (592 bytes per shaft, 8,880 at N=1) would not: the split
+    # does not depend on the exact test, so this build uses the SAT, which needs no table.
+    monkeypatch.setenv("LSBENCH_LS_TEST", "sat")
     scene = random_scene(120, size=size, seed=7)
     rays = random_rays(scene, 80)
     params = BuildParams(resolution=(4, 4, 4), ls_n=1)

@@ -57,7 +57,7 @@ def _numpy_scalar(type_name: str, value):
 class OpenCLDevice(Device):
     backend = "opencl"
     limit_name = "CL_DEVICE_MAX_MEM_ALLOC_SIZE"
-    line_space_test = "clip"  # PoCL: the clipper 2x faster than the 57-axis SAT (linespace.py)
+    line_space_test = "edges"  # PoCL: as fast as the clipper (docs/linespace-build.md)
 
     def __init__(self):
         import pyopencl as cl

@@ -281,7 +281,9 @@ def _csr_keys(offsets, tri_ids, voxel_count, n_tri):
 # facet; otherwise by the exact test of the backend: "sat", the separating-axis test (triangle
 # normal, triangle edges x cell axes, triangle edges x corner-to-corner directions, margin
 # eps * |axis|), or "clip", clipping against the facet planes pushed out by eps (Sutherland-
-# Hodgman) = the triangle meets the polytope {x : n_q . x + w_q <= eps}. Whatever the device does
+# Hodgman) = the triangle meets the polytope {x : n_q . x + w_q <= eps}, or "edges", the same
+# predicate decided by edges (a triangle edge in that polytope or a polytope edge through the
+# triangle, linespace.h: ls_volume_edge_meets). Whatever the device does
 # to get there faster (culls, certain cases: linespace.h), its lists must be these, up to float32
 # rounding: shaft_candidates(eps - delta) <= device <= shaft_candidates(eps + delta) (the
 # decision grows with eps), see linespace_borderline.
@@ -336,8 +338,8 @@ def shaft_facets(n: int) -> np.ndarray:
 
 def shaft_candidates(tris: np.ndarray, n: int, eps: float, test: str) -> np.ndarray:
     """(15 N^4, T) bool: triangle t (tris (T, 3, 3), cell-local float64) is a candidate of shaft s."""
-    if test not in ("sat", "clip"):
-        raise ValueError(f"test must be 'sat' or 'clip', got {test!r}")
+    if test not in ("sat", "clip", "edges"):
+        raise ValueError(f"test must be 'sat', 'clip' or 'edges', got {test!r}")
     corners, facets = shaft_corners(n), shaft_facets(n)
     dist = np.einsum("tkc,sfc->stfk", tris, facets[:, :, :3]) + facets[:, None, :, 3, None]  # (S, T, 8, 3)
     out_all = (dist - eps > 0).all(axis=3).any(axis=2)

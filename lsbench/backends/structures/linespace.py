@@ -89,7 +89,7 @@ LS_MAX_CHUNKS = 4
 # most LS_MAX_POLY = 16 vertices) and the cell lookup (< 32), so chunks of 4095 (SAT) or 240
 # (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
-LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16}
+LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 18 + 16}
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -108,6 +108,11 @@ LS_MAX_SETS_PER_CELL = 1 << 16
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
+# The edges of each shaft volume pushed out by LS_EPS (the "edges" exact test): LS_EDGE_SLOTS float4.
+LS_EDGE_SLOTS = 1 + 2 * 18
+LS_EDGES = KernelSpec(
+    "ls_edges", LS_HEADERS_NO_SCENE, "ls_edges_kernel",
+    (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w")), LS_UNIFORMS)
 _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
 _ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"),
@@ -173,25 +178,35 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_SHAFT_SET,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_SHAFT_SET,
                LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
-# get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3) or the
-# equivalent separating-axis test. Both are conservative with the same margin and give the same
-# candidates up to that margin; each device uses the one its driver runs faster
-# (Device.line_space_test: llvmpipe spends 10x more time on the clipper's variable-indexed polygon
-# arrays, PoCL runs the clipper about 2x faster than the 57-axis SAT). Override with
-# LSBENCH_LS_TEST=clip|sat.
+# get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
+# separating-axis test, or "edges": the clipper's predicate (does the triangle meet the volume of
+# the planes pushed out by the margin?) decided by edges, a triangle edge in the volume or a
+# volume edge through the triangle (linespace.h: ls_volume_edge_meets). All three are conservative
+# with the same margin and give the same candidates up to that margin; each device uses the one
+# its driver runs fastest (Device.line_space_test; docs/linespace-build.md measures them).
+# Override with LSBENCH_LS_TEST=clip|sat|edges.
+EXACT_TESTS = ("clip", "sat", "edges")
+
+
 def exact_test(device: Device) -> str:
     choice = os.environ.get("LSBENCH_LS_TEST") or device.line_space_test
-    if choice not in ("clip", "sat"):
-        raise ValueError(f"LSBENCH_LS_TEST must be 'clip' or 'sat', got {choice!r}")
+    if choice not in EXACT_TESTS:
+        raise ValueError(f"LSBENCH_LS_TEST must be one of {', '.join(EXACT_TESTS)}, got {choice!r}")
     return choice
 
 
 def _with_test(device: Device, spec: KernelSpec) -> KernelSpec:
-    return spec.with_defines(LS_CLIP_SH=1) if exact_test(device) == "clip" else spec
+    test = exact_test(device)
+    if test == "clip":
+        return spec.with_defines(LS_CLIP_SH=1)
+    if test == "edges" and spec.name in (LS_COUNT.name, LS_FILL.name):
+        return dataclasses.replace(spec, buffers=spec.buffers + (Buf("ls_edges", "float4", "r"),)).with_defines(
+            LS_EXACT_EDGES=1)
+    return spec
 
 
 def shafts_per_cell(n: int) -> int:
@@ -503,6 +518,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     try:
         planes = temp("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
+        by_edges = exact_test(device) == "edges"
+        edges = temp("ls_edges", 16 * LS_EDGE_SLOTS * per_cell if by_edges else 4, zero=False)
+        if by_edges:
+            device.dispatch(LS_EDGES, per_cell, {"ls_planes": planes, "ls_edges": edges}, u)
         stats_buf = temp("ls_stats", 16)
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
@@ -510,7 +529,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
         masks = temp("ls_masks", 4 * most_refs * patches, zero=False)
         bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
-        cell_bufs = dict(scene_buffers, ls_planes=planes, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
+        cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
                          ls_pair_bits=bits)
         items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)

@@ -231,6 +231,54 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 }
 #endif  // shaft volumes
 
+#define LS_MAX_EDGES 18                    // a convex polytope of at most 8 facets: 3 * 8 - 6 edges
+#define LS_EDGE_SLOTS (1 + 2 * LS_MAX_EDGES)  // per shaft: (count, 0, 0, 0), then each edge's two ends
+
+#ifdef KERNEL_ls_edges
+// ---- The edges of the shaft volume pushed out by ls_eps (the "edges" exact test) -------------
+// The volume {x : dist(pl, x) <= eps for every facet plane} (what the clipper of ls_clip_meets
+// clips against). Each pair of non-parallel facets whose planes meet along a stretch inside the
+// other facets' half-spaces gives an edge: the line of the two pushed planes, clipped to the
+// others (Liang-Barsky). Once per N and shaft, like the planes.
+INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
+    float eps = V(ls_eps);
+    uint pb = shaft * U32(LS_MAX_PLANES);
+    uint base = shaft * U32(LS_EDGE_SLOTS);
+    uint count = 0u;
+    for (int i = 0; i < LS_MAX_PLANES; ++i) {
+        float4 pi = V(ls_planes)[pb + U32(i)];
+        for (int j = i + 1; j < LS_MAX_PLANES; ++j) {
+            float4 pj = V(ls_planes)[pb + U32(j)];
+            float3 d = cross(pi.xyz, pj.xyz);
+            float det = dot(d, d);  // 1 - (n_i . n_j)^2 for unit normals; 0 for unused slots
+            if (det < 1e-8f) continue;
+            // The point of the line in span(n_i, n_j): n_i . x = eps - w_i, n_j . x = eps - w_j.
+            float g = dot(pi.xyz, pj.xyz);
+            float ci = eps - pi.w, cj = eps - pj.w;
+            float3 x0 = pi.xyz * ((ci - g * cj) / det) + pj.xyz * ((cj - g * ci) / det);
+            float2 r = make_float2(-INF_F, INF_F);
+            for (int k = 0; k < LS_MAX_PLANES; ++k) {
+                if (k == i || k == j) continue;
+                float4 pk = V(ls_planes)[pb + U32(k)];
+                float sa = dot(pk.xyz, d);
+                float sb = ls_plane_dist(pk, x0) - eps;  // inside: sb + t sa <= 0
+                if (sa > 0.0f) r.y = min(r.y, -sb / sa);
+                else if (sa < 0.0f) r.x = max(r.x, -sb / sa);
+                else if (sb > 0.0f) r = make_float2(1.0f, 0.0f);
+            }
+            if (r.x < r.y && count < U32(LS_MAX_EDGES)) {
+                float3 e0 = x0 + d * r.x;
+                float3 e1 = x0 + d * r.y;
+                V(ls_edges)[base + 1u + 2u * count] = make_float4(e0.x, e0.y, e0.z, 0.0f);
+                V(ls_edges)[base + 2u + 2u * count] = make_float4(e1.x, e1.y, e1.z, 0.0f);
+                count += 1u;
+            }
+        }
+    }
+    V(ls_edges)[base] = make_float4(F32(count), 0.0f, 0.0f, 0.0f);
+}
+#endif
+
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill) || defined(KERNEL_ls_masks)
 #define LS_CULL_MARGIN 0.05f       // cell-local units: 50 x ls_eps (linespace.py: LS_EPS)
 #define LS_CULL_BITS 0x3ffffffu     // bits 0..25: 13 axes x (below, above)
@@ -256,9 +304,11 @@ LS_CELL_SEARCH(ls_item_cell, ls_item_bases)
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
 // Cheap outcomes first (ls_side): all corners outside one plane -> no; all corners inside every
-// plane -> yes; otherwise clip the triangle against the planes (Sutherland-Hodgman, thesis 3.3.3)
-// and see whether anything is left (LS_CLIP_SH), or, by default, the equivalent exact separating-
-// axis test ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
+// plane -> yes; otherwise the exact test the build compiles in (linespace.py: exact_test): by
+// default "edges" (LS_EXACT_EDGES: a triangle edge in the pushed volume or a volume edge through
+// the triangle, ls_volume_edge_meets); or clip the triangle against the planes (Sutherland-Hodgman,
+// thesis 3.3.3) and see whether anything is left (LS_CLIP_SH); or the separating-axis test
+// ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
 // arrays, which llvmpipe handles slowly.
 #define LS_OUT(pl, p) (ls_plane_dist(pl, p) - eps > 0.0f)
 // 0: separated by this plane, 1: all corners inside it, 2: straddles it.
@@ -344,6 +394,40 @@ INLINE int ls_sat_meets(uint n, LsShaft sh, float3 a, float3 b, float3 c, float 
     return 1;
 }
 
+#ifdef LS_EXACT_EDGES
+// 1 when x (in the triangle's plane) lies in triangle a b c of normal nrm (boundary included).
+INLINE int ls_in_triangle(float3 nrm, float3 a, float3 b, float3 c, float3 x) {
+    return (dot(cross(b - a, x - a), nrm) >= 0.0f && dot(cross(c - b, x - b), nrm) >= 0.0f &&
+            dot(cross(a - c, x - c), nrm) >= 0.0f) ? 1 : 0;
+}
+
+// The second half of the "edges" exact test, after no triangle edge met the pushed volume
+// (ls_edge_in_shaft with eps): a triangle meets a convex polytope iff one of its edges meets
+// the polytope or one of the polytope's edges meets the triangle (where neither happens, the
+// polytope's cut with the triangle's plane would lie inside the triangle, and that cut's corners
+// lie on polytope edges). The same predicate as clipping against the pushed planes (ls_clip_meets),
+// without its variable-indexed polygon arrays: a fixed walk over at most 18 edges.
+INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3 c) {
+    float3 nrm = cross(b - a, c - a);
+    if (dot(nrm, nrm) == 0.0f) return 0;  // a degenerate triangle is its edges: tested before
+    uint base = shaft * U32(LS_EDGE_SLOTS);
+    uint count = U32(V(ls_edges)[base].x);
+    for (uint e = 0u; e < count; ++e) {
+        float3 p = V(ls_edges)[base + 1u + 2u * e].xyz;
+        float3 q = V(ls_edges)[base + 2u + 2u * e].xyz;
+        float dp = dot(nrm, p - a);
+        float dq = dot(nrm, q - a);
+        if ((dp > 0.0f && dq > 0.0f) || (dp < 0.0f && dq < 0.0f)) continue;
+        if (dp == dq) {  // both 0: the edge lies in the triangle's plane; its ends
+            if (ls_in_triangle(nrm, a, b, c, p) != 0 || ls_in_triangle(nrm, a, b, c, q) != 0) return 1;
+            continue;
+        }
+        if (ls_in_triangle(nrm, a, b, c, p + (q - p) * (dp / (dp - dq))) != 0) return 1;
+    }
+    return 0;
+}
+#endif
+
 // ---- Build: count pass (ls_count) and fill pass (ls_fill), one work item per (shaft, chunk) ----
 // Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
 // cell into ls_cell_tris). Cell c has k_c chunks of at most ls_chunk candidates (the driver's loop
@@ -369,29 +453,30 @@ INLINE int ls_sat_meets(uint n, LsShaft sh, float3 a, float3 b, float3 c, float 
 // compare them with the numpy reference of lsbench/oracle/reference.py: shaft_candidates, and
 // docs/linespace-build.md with the lists of the build before 1 and 2 on Sponza).
 
-// Part [r.x, r.y] of segment a -> b on the inner side of plane pl (r.x > r.y: none).
-INLINE float2 ls_clip_range(float4 pl, float3 a, float3 b, float2 r) {
-    float da = ls_plane_dist(pl, a);
-    float db = ls_plane_dist(pl, b);
+// Part [r.x, r.y] of segment a -> b on the inner side of plane pl pushed out by m (r.x > r.y: none).
+INLINE float2 ls_clip_range(float4 pl, float3 a, float3 b, float2 r, float m) {
+    float da = ls_plane_dist(pl, a) - m;
+    float db = ls_plane_dist(pl, b) - m;
     if (da > 0.0f && db > 0.0f) return make_float2(1.0f, 0.0f);
     if (da > 0.0f) r.x = max(r.x, da / (da - db));
     else if (db > 0.0f) r.y = min(r.y, da / (da - db));
     return r;
 }
 
-// 1 when some point of the triangle edge a -> b lies in the shaft volume (inside all its facet
-// planes, no margin): the triangle then meets the shaft.
+// 1 when some point of the triangle edge a -> b lies in the shaft volume with its facet planes
+// pushed out by m (m = 0: the shaft itself, which the triangle then meets; m = eps: the volume
+// the exact tests accept).
 INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p4, float4 p5, float4 p6,
-                            float4 p7, float3 a, float3 b) {
+                            float4 p7, float3 a, float3 b, float m) {
     float2 r = make_float2(0.0f, 1.0f);
-    r = ls_clip_range(p0, a, b, r);
-    r = ls_clip_range(p1, a, b, r);
-    r = ls_clip_range(p2, a, b, r);
-    r = ls_clip_range(p3, a, b, r);
-    r = ls_clip_range(p4, a, b, r);
-    r = ls_clip_range(p5, a, b, r);
-    r = ls_clip_range(p6, a, b, r);
-    r = ls_clip_range(p7, a, b, r);
+    r = ls_clip_range(p0, a, b, r, m);
+    r = ls_clip_range(p1, a, b, r, m);
+    r = ls_clip_range(p2, a, b, r, m);
+    r = ls_clip_range(p3, a, b, r, m);
+    r = ls_clip_range(p4, a, b, r, m);
+    r = ls_clip_range(p5, a, b, r, m);
+    r = ls_clip_range(p6, a, b, r, m);
+    r = ls_clip_range(p7, a, b, r, m);
     return r.x <= r.y ? 1 : 0;
 }
 
@@ -414,9 +499,17 @@ INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, flo
     int s6 = ls_side(p6, a, b, c, eps), s7 = ls_side(p7, a, b, c, eps);
     if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) return 0;  // 3. facet planes
     if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) return 1;
-    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a) != 0) return 1;  // 2. certain: an edge inside
+#ifdef LS_EXACT_EDGES
+    // 3. exact, by edges: a triangle edge in the pushed volume, or a volume edge through the triangle
+    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, eps) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, eps) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, eps) != 0) return 1;
+    return ls_volume_edge_meets(CTX_ARG shaft, a, b, c);
+#else
+    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, 0.0f) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, 0.0f) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, 0.0f) != 0) return 1;  // 2. certain: an edge inside
+#endif
 #ifdef LS_CLIP_SH
     return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // 3. exact: Sutherland-Hodgman
 #else
