@@ -21,6 +21,20 @@ from helpers import dense_cell_case
 SPONZA_CAMERA = Camera(eye=(1100.0, 180.0, -40.0), target=(-900.0, 420.0, 40.0), up=(0, 1, 0), fov_deg=65.0)
 
 
+@pytest.mark.parametrize("n", [1, 255, 4096, 4097, 65_537, 1_048_577 + 13])
+def test_prefix_sum_is_the_numpy_cumsum(device, n):
+    """The device's in-place exclusive scan (every build's offsets) across block boundaries (GLSL:
+    256 invocations x 16 items per block, recursing over the block sums), its total mod 2^32."""
+    values = np.random.default_rng(n).integers(0, 2**31, n, dtype=np.uint64).astype(np.uint32)
+    buf = device.upload("scan_test", values)
+    total = device.scan_in_place(buf, n)
+    got = device.read(buf, np.uint32)[:n]
+    device.release(buf)
+    want = np.concatenate([np.zeros(1, np.uint64), np.cumsum(values.astype(np.uint64))[:-1]]) % 2**32
+    np.testing.assert_array_equal(got, want.astype(np.uint32))
+    assert total == int(values.astype(np.uint64).sum()) & 0xFFFFFFFF
+
+
 def voxel_lists(built):
     d = built.device
     return (d.read(built.buffers["voxel_offsets"], np.uint32).astype(np.int64),

@@ -24,7 +24,8 @@ MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # group's longest, and the long rays then share SIMD groups. 4000 keeps the launches few.
 LLVMPIPE_LOOP_BUDGET = 4000
 HOST_CLOCK = "host clock around glFinish"
-SCAN_BLOCK = 256  # items per work group in the prefix-sum kernels (2 per invocation)
+SCAN_BLOCK = 256  # invocations per work group in the prefix-sum kernels (shaders/glsl/scan.comp)
+SCAN_CHUNK = 16  # consecutive items each invocation scans serially
 
 
 def _prelude() -> str:
@@ -276,7 +277,8 @@ class GLSLDevice(Device):
         prog = self._scan_programs.get(kind)
         if prog is None:
             src = (SHADER_ROOT / "glsl" / "scan.comp").read_text()
-            src = src.replace("#version 450\n", f"#version 450\n#define {kind} 1\n#define BLOCK {SCAN_BLOCK}\n", 1)
+            src = src.replace("#version 450\n", f"#version 450\n#define {kind} 1\n#define BLOCK {SCAN_BLOCK}\n"
+                              f"#define CHUNK {SCAN_CHUNK}\n", 1)
             try:
                 prog = self.ctx.compute_shader(src)
             except Exception as exc:
@@ -285,9 +287,9 @@ class GLSLDevice(Device):
         return prog
 
     def _scan_in_place(self, buf: DeviceBuffer, n: int) -> None:
-        """Blelloch-style block scan: scan each block of SCAN_BLOCK items in shared memory,
+        """Block scan (shaders/glsl/scan.comp): scan each block of SCAN_BLOCK x SCAN_CHUNK items,
         write block totals, scan those recursively, add them back."""
-        blocks = math.ceil(n / SCAN_BLOCK)
+        blocks = math.ceil(n / (SCAN_BLOCK * SCAN_CHUNK))
         sums = self.alloc(f"{buf.name}.blocksums", 4 * blocks)
         prog = self._scan_program("SCAN_BLOCKS")
         buf.handle.bind_to_storage_buffer(0)
