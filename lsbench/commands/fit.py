@@ -18,13 +18,17 @@ from lsbench.inputs.scenario import RUN_RULES
 
 NAME = "fit"
 HELP = "measure the cost model's constants per device (for \"auto\" settings) and store them"
-DEFAULT_SCENES = ("cornell", "spheres")
+DEFAULT_SCENES = ("atrium", "spheres")
+DEFAULT_SIZE = "128x128"
 # (structure, resolution, N): steps, tests and lookups in different proportions, so the fit can
-# tell the constants apart; small enough for llvmpipe and PoCL on two cores (~1-2 min a backend).
+# tell the constants apart, in the range where the auto choice decides (5-250 candidate tests per
+# ray on the two scenes, not the 500-1000 of a 4^3 or 16^3 grid, whose long lists cost less per
+# test and pulled the test constant down: docs/fit.md, "The constants"); 16,384 rays per launch
+# amortize the launch. PoCL ~15 s, llvmpipe ~25 s on two cores.
 CALIBRATION = (
-    ("grid", "4", 0), ("grid", "16", 0), ("grid", "64", 0),
-    ("svo", "16", 0), ("svo", "64", 0), ("esvo", "16", 0), ("esvo", "64", 0),
-    ("grid-ls", "8", 1), ("grid-ls", "16", 2), ("svo-ls", "16", 1), ("esvo-ls", "16", 2),
+    ("grid", "32", 0), ("grid", "64", 0), ("grid", "128", 0),
+    ("svo", "64", 0), ("svo", "128", 0), ("esvo", "64", 0), ("esvo", "128", 0),
+    ("grid-ls", "32", 2), ("svo-ls", "64", 2), ("esvo-ls", "64", 2),
 )
 
 
@@ -36,7 +40,8 @@ def setup_arguments(sub) -> None:
                    metavar="BACKEND", help=f"devices to calibrate (default: {', '.join(backends.BACKENDS)})")
     p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="SCENE",
                    help=f"calibration scenes (default: {', '.join(DEFAULT_SCENES)})")
-    p.add_argument("--size", type=checked_text(parse_size), default="64x64", help="image size WxH (camera rays)")
+    p.add_argument("--size", type=checked_text(parse_size), default=DEFAULT_SIZE,
+                   help=f"image size WxH (camera rays; default {DEFAULT_SIZE})")
     p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=3, help="timed launches per case")
     p.add_argument("--out-dir", type=writable_folder, metavar="DIR",
                    help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")

@@ -41,16 +41,15 @@ class Constants:
     extra: dict = field(default_factory=dict)  # what the file holds besides (cases, residual, ...)
 
 
-# Fallback constants when no `lsbench fit` has run on a device: `lsbench fit --backends glsl opencl`
-# (cornell + spheres, 64x64) on the shared 2-core development machine, 2026-12-01 (llvmpipe 22.3.6,
-# LLVM 15; PoCL 3.1 on an AMD EPYC), rounded; fit residuals 50 % / 39 % rms on that busy machine
-# (docs/fit.md). The fit put the per-ray constant at 0 on both, and llvmpipe's shaft lookup too (its
-# cost went into the steps). On any other device they rank settings only roughly: run `lsbench fit`.
+# Fallback constants when no `lsbench fit` has run on a device: `lsbench fit` (atrium + spheres,
+# 128x128, the calibration of commands/fit.py) on the idle 2-core development machine, 2026-12-02
+# (llvmpipe 22.3.6, LLVM 15; PoCL 3.1 on an AMD EPYC), rounded; fit residuals 9 % / 16 % rms
+# (docs/fit.md). On any other device they rank settings only roughly: run `lsbench fit`.
 DEFAULTS = {
-    "glsl": Constants(ray=0.0, step={"grid": 2.0e-8, "svo": 3.0e-8, "esvo": 2.3e-8}, test=7.6e-8,
-                      lookup=0.0, source="defaults (glsl, llvmpipe 22.3.6 on the development machine; docs/fit.md)"),
-    "opencl": Constants(ray=0.0, step={"grid": 2.0e-8, "svo": 2.8e-8, "esvo": 2.0e-8}, test=3.0e-8,
-                        lookup=8.3e-8, source="defaults (opencl, PoCL 3.1 on the development machine; docs/fit.md)"),
+    "glsl": Constants(ray=4.5e-7, step={"grid": 9.3e-9, "svo": 1.9e-8, "esvo": 1.4e-8}, test=8.9e-9,
+                      lookup=4.4e-8, source="defaults (glsl, llvmpipe 22.3.6 on the development machine; docs/fit.md)"),
+    "opencl": Constants(ray=3.1e-7, step={"grid": 1.8e-9, "svo": 1.0e-8, "esvo": 4.5e-9}, test=3.4e-9,
+                        lookup=2.3e-8, source="defaults (opencl, PoCL 3.1 on the development machine; docs/fit.md)"),
 }
 
 
