@@ -414,7 +414,7 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
     # Every other buffer of the case stays under `limit`: the triangle records (48 bytes per
     # triangle) and the slice state (68 bytes per ray where the trace runs in slices). The "edges"
-    # exact test's table of shaft edges (592 bytes per shaft, 8,880 at N=1) would not: the split
+    # exact test's table of shaft edges (912 bytes per shaft, 13,680 at N=1) would not: the split
     # does not depend on the exact test, so this build uses the SAT, which needs no table.
     monkeypatch.setenv("LSBENCH_LS_TEST", "sat")
     scene = random_scene(120, size=size, seed=7)

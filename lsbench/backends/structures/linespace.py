@@ -89,7 +89,7 @@ LS_MAX_CHUNKS = 4
 # most LS_MAX_POLY = 16 vertices) and the cell lookup (< 32), so chunks of 4095 (SAT) or 240
 # (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
-LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 18 + 16}
+LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 28 + 16}
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -109,7 +109,7 @@ LS_MAX_SETS_PER_CELL = 1 << 16
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
 # The edges of each shaft volume pushed out by LS_EPS (the "edges" exact test): LS_EDGE_SLOTS float4.
-LS_EDGE_SLOTS = 1 + 2 * 18
+LS_EDGE_SLOTS = 1 + 2 * 28  # must match shaders/common/linespace.h (LS_MAX_EDGES)
 LS_EDGES = KernelSpec(
     "ls_edges", LS_HEADERS_NO_SCENE, "ls_edges_kernel",
     (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w")), LS_UNIFORMS)

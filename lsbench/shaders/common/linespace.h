@@ -231,7 +231,8 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 }
 #endif  // shaft volumes
 
-#define LS_MAX_EDGES 18                    // a convex polytope of at most 8 facets: 3 * 8 - 6 edges
+#define LS_MAX_EDGES 28  // one per pair of the 8 facet planes (a polytope of 8 facets has at most 18
+                         // edges; float noise at a vertex of 4 facets may add tiny ones: none is dropped)
 #define LS_EDGE_SLOTS (1 + 2 * LS_MAX_EDGES)  // per shaft: (count, 0, 0, 0), then each edge's two ends
 
 #ifdef KERNEL_ls_edges
@@ -406,7 +407,7 @@ INLINE int ls_in_triangle(float3 nrm, float3 a, float3 b, float3 c, float3 x) {
 // the polytope or one of the polytope's edges meets the triangle (where neither happens, the
 // polytope's cut with the triangle's plane would lie inside the triangle, and that cut's corners
 // lie on polytope edges). The same predicate as clipping against the pushed planes (ls_clip_meets),
-// without its variable-indexed polygon arrays: a fixed walk over at most 18 edges.
+// without its variable-indexed polygon arrays: a walk over its edges (at most 18, up to 28 slots).
 INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3 c) {
     float3 nrm = cross(b - a, c - a);
     if (dot(nrm, nrm) == 0.0f) return 0;  // a degenerate triangle is its edges: tested before
