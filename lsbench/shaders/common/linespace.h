@@ -501,15 +501,15 @@ INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, flo
     if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) return 0;  // 3. facet planes
     if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) return 1;
 #ifdef LS_EXACT_EDGES
-    // 3. exact, by edges: a triangle edge in the pushed volume, or a volume edge through the triangle
-    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, eps) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, eps) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, eps) != 0) return 1;
-    return ls_volume_edge_meets(CTX_ARG shaft, a, b, c);
+    float edge_margin = eps;  // 3. exact, by edges, first half: a triangle edge in the pushed volume
 #else
-    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, 0.0f) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, 0.0f) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, 0.0f) != 0) return 1;  // 2. certain: an edge inside
+    float edge_margin = 0.0f;  // 2. certain: a triangle edge inside the shaft itself
+#endif
+    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, edge_margin) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, edge_margin) != 0 ||
+        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, edge_margin) != 0) return 1;
+#ifdef LS_EXACT_EDGES
+    return ls_volume_edge_meets(CTX_ARG shaft, a, b, c);  // second half: a volume edge through it
 #endif
 #ifdef LS_CLIP_SH
     return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // 3. exact: Sutherland-Hodgman
