@@ -5,8 +5,10 @@ every "auto" case on that device then finds them.
 
 The sweep: every structure at a few settings on small built-in scenes (the same cases as `lsbench
 trace`, in this process), each with its work counters (iterations, tests, lookups per ray) and its
-device time per ray; a non-negative least-squares fit weighted by relative error gives the
-constants, and the stored file keeps each case's measured time beside the fitted one."""
+device time per ray; the iterations and tests are taken as the device's SIMD groups issue them
+(the record's mean over its SIMD efficiency at the device's width: what the model predicts); a
+non-negative least-squares fit weighted by relative error gives the constants, and the stored file
+keeps each case's measured time beside the fitted one."""
 from __future__ import annotations
 
 import datetime as _dt
@@ -65,7 +67,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
 
     env = record_env()
     settings = RunSettings(width=width, height=height, repeats=repeats, warmup=1, embree_timing=False)
-    rows, seconds, cases, device = [], [], [], None
+    rows, seconds, cases, device, simd_width = [], [], [], None, 1
     for scene_name in scenes:
         scene = load_scene(scene_name)
         rays = make_rays("primary", scene, width, height)
@@ -75,16 +77,19 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
             if rec["status"] != "ok" or rec.get("iterations_per_ray") is None:
                 log(f"  {case.key}: left out ({rec['reason'] or rec.get('work_counters_error')})")
                 continue
-            device = rec["device"]
+            device, simd_width = rec["device"], rec.get("simd_width_device") or 1
             per_ray = rec["trace_seconds"] / rec["ray_count"]
             work = (rec["iterations_per_ray"], rec["candidate_tests_per_ray"], rec["linespace_lookups_per_ray"])
-            rows.append(design_row(structure, *work))
+            issued = (_issued(work[0], rec.get("simd_efficiency_steps_device")),
+                      _issued(work[1], rec.get("simd_efficiency_tests_device")))
+            rows.append(design_row(structure, *issued, work[2]))
             seconds.append(per_ray)
             cases.append({"scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
                           "iterations_per_ray": work[0], "candidate_tests_per_ray": work[1],
-                          "linespace_lookups_per_ray": work[2], "seconds_per_ray": per_ray})
-            log(f"  {case.key}: {per_ray * 1e9:.1f} ns/ray, {work[0]:.1f} steps, {work[1]:.1f} tests, "
-                f"{work[2]:.1f} lookups")
+                          "linespace_lookups_per_ray": work[2], "issued_iterations_per_ray": issued[0],
+                          "issued_tests_per_ray": issued[1], "seconds_per_ray": per_ray})
+            log(f"  {case.key}: {per_ray * 1e9:.1f} ns/ray, {work[0]:.1f} steps, {work[1]:.1f} tests "
+                f"({issued[0]:.1f}, {issued[1]:.1f} issued by groups of {simd_width}), {work[2]:.1f} lookups")
     if len(rows) < len(COLUMNS):
         raise RuntimeError(f"{backend}: only {len(rows)} calibration cases ran, fewer than the "
                            f"{len(COLUMNS)} constants")
@@ -95,7 +100,15 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     return {"device": device, "backend": backend, "driver": rec.get("driver"), "commit": env.get("commit"),
             "made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "ray": c["ray"], "step": {f: c[f"step_{f}"] for f in ("grid", "svo", "esvo")},
-            "test": c["test"], "lookup": c["lookup"], "residual": residual, "cases": cases}
+            "test": c["test"], "lookup": c["lookup"], "simd_width": simd_width, "residual": residual,
+            "cases": cases}
+
+
+def _issued(mean: float, efficiency: float | None) -> float:
+    """Lane-slots per ray that the device's SIMD groups issued for a counter: its mean over the
+    record's SIMD efficiency at the device's width (profile/simd.py; the mean where there is none:
+    width 1, unknown, or nothing counted)."""
+    return mean / efficiency if efficiency else mean
 
 
 def run(args) -> int:

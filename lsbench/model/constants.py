@@ -1,11 +1,12 @@
 """The cost model's constants per device (model/cost.py: seconds per ray = ray + step[family] x
-iterations + test x candidate tests + lookup x Line Space lookups), fitted by `lsbench fit` from
-the work counters and device times of a short calibration sweep, and stored one JSON file per
-device:
+iterations + test x candidate tests + lookup x Line Space lookups, the iterations and tests as the
+device's SIMD groups issue them), fitted by `lsbench fit` from the work counters and device times
+of a short calibration sweep, and stored one JSON file per device:
 
     $LSBENCH_FIT_DIR/<backend>-<device slug>.json      (default folder ~/.cache/lsbench/fit)
     {"device": ..., "backend": ..., "driver": ..., "ray": s, "step": {"grid": s, "svo": s, "esvo": s},
-     "test": s, "lookup": s, "cases": [the calibration cases: structure, setting, work, seconds/ray],
+     "test": s, "lookup": s, "simd_width": lanes the issued work was counted for,
+     "cases": [the calibration cases: structure, setting, work (mean and issued), seconds/ray],
      "residual": relative rms error of the fit, "made": ISO time, "commit": ...}
 
 A device without a stored file uses DEFAULTS (measured on this project's machines, below), and
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lsbench.profile.simd import device_simd_width
 from lsbench.report.format import slug
 
 FAMILIES = ("grid", "svo", "esvo")
@@ -43,11 +45,12 @@ class Constants:
 
 # Fallback constants when no `lsbench fit` has run on a device: `lsbench fit` (atrium + spheres,
 # 128x128, the calibration of commands/fit.py) on the idle 2-core development machine, 2026-12-02
-# (llvmpipe 22.3.6, LLVM 15; PoCL 3.1 on an AMD EPYC), rounded; fit residuals 9 % / 16 % rms
-# (docs/fit.md). On any other device they rank settings only roughly: run `lsbench fit`.
+# (llvmpipe 22.3.6, LLVM 15, SIMD groups of 8 lanes, `--repeats 5`; PoCL 3.1 on an AMD EPYC, one
+# lane), rounded; fit residuals 10 % / 16 % rms (docs/fit.md). On any other device they rank
+# settings only roughly: run `lsbench fit`.
 DEFAULTS = {
-    "glsl": Constants(ray=4.5e-7, step={"grid": 9.3e-9, "svo": 1.9e-8, "esvo": 1.4e-8}, test=8.9e-9,
-                      lookup=4.4e-8, source="defaults (glsl, llvmpipe 22.3.6 on the development machine; docs/fit.md)"),
+    "glsl": Constants(ray=1.4e-8, step={"grid": 9.6e-9, "svo": 2.0e-8, "esvo": 1.7e-8}, test=5.9e-9,
+                      lookup=8.7e-8, source="defaults (glsl, llvmpipe 22.3.6 on the development machine; docs/fit.md)"),
     "opencl": Constants(ray=3.1e-7, step={"grid": 1.8e-9, "svo": 1.0e-8, "esvo": 4.5e-9}, test=3.4e-9,
                         lookup=2.3e-8, source="defaults (opencl, PoCL 3.1 on the development machine; docs/fit.md)"),
 }
@@ -70,6 +73,13 @@ def load_constants(device, folder: Path | None = None) -> Constants:
         return DEFAULTS[device.backend]
     try:
         data = json.loads(path.read_text())
+        lanes = device_simd_width(info)[0] or 1
+        if data.get("simd_width") != lanes:  # fitted on other work than the model predicts here
+            fallback = DEFAULTS[device.backend]
+            return dataclasses.replace(fallback, source=(
+                f"{fallback.source}; {path} was fitted for SIMD groups of {data.get('simd_width', 'unknown')} "
+                f"lanes (before issued work was fitted, or another device), this device runs {lanes}: "
+                "run `lsbench fit` again"))
         extra = {k: v for k, v in data.items() if k not in ("ray", "step", "test", "lookup")}
         return Constants(float(data["ray"]), {f: float(data["step"][f]) for f in FAMILIES}, float(data["test"]),
                          float(data["lookup"]), str(path), extra)

@@ -14,7 +14,12 @@ over the counted grids (the model's arithmetic, not a structure: nothing here bu
   all); other cells test their list.
 
 Time per ray = ray + step[family] x iterations + test x candidate tests + lookup x lookups, the
-constants per device (model/constants.py: measured by `lsbench fit`, or documented defaults).
+constants per device (model/constants.py: measured by `lsbench fit`, or documented defaults), the
+iterations and tests as the device's SIMD groups issue them: a group of lanes in lock step runs
+each loop as often as its busiest lane (profile/simd.py), so on llvmpipe (8 lanes) a test that one
+ray of eight makes costs the group as much as eight (BMW, esvo 256³ -> 512³: 2.7 -> 1.0 tests per
+ray, 7.0 -> 2.5 issued, measured 253 -> 199 ns per ray; fitted on the means, the model put the
+two within 1 ns). On a device of one lane per group (PoCL's CPU device) issued = mean.
 
 Settings tried for "auto" (Ize, Shirley & Parker 2007: a uniform grid wants cells ~ lambda x
 triangles, per axis in proportion to the scene's extents): grids at lambda in GRID_LAMBDAS, non-cubic;
@@ -47,45 +52,137 @@ GRID_MAX_VOXELS = 2**26
 AUTO_NS = (1, 2, 3, 4)
 AUTO_KS = (0, 2, 4, 8, 16, 32, 64)
 AUTO_REBUILDS = 2  # an auto Line Space built over the budget is rebuilt at most this often (Choice)
-# Rays of the case walked per setting (jittered: ray_sample). The candidate tests per ray have a
-# heavy tail (a few rays cross the dense cells): on BMW (512² default camera, grid 106 x 32 x 117)
-# 2048 rays predicted 4.9 tests per ray, 8192 9.4, 32768 12.4, all rays 12.6 (measured 12.64), and
-# with 2048 auto chose that grid at 5.7 Mrays/s, with 8192 134 x 40 x 148 at 7.6 (best swept 7.7),
-# for 0.3-1.3 s more choosing (docs/fit.md).
+# Rays of the case walked per setting, drawn per counted grid (draw): the candidate tests per ray
+# have a heavy tail (on BMW, 512² default camera, 0.1 % of the rays make 57-80 % of the tests of
+# esvo 256³ / 512³ and grid 134 x 40 x 148, up to 20,735 tests by one ray), so the rays are drawn
+# with probabilities that follow the candidates of their hit voxel; 8192 such rays put the mean
+# and issued tests within 6-11 % rms of every ray's (docs/fit.md).
 RAY_SAMPLE = 8192
 RUNNERS_UP = 5  # options kept in the record besides the chosen one
 
 
 @dataclass(frozen=True)
 class Work:
-    """Mean work per ray, as the profiling counters count it (iterations_per_ray, ...)."""
+    """Mean work per ray, as the profiling counters count it (iterations_per_ray, ...), and the
+    lane-slots per ray that SIMD groups of the sample's width issue for the walk and the tests
+    (each group runs every loop as often as its busiest lane: profile/simd.py; at width 1 they
+    are the means). None: not predicted (a setting ruled out), taken as the means."""
     iterations: float
     tests: float
     lookups: float
+    issued_iterations: float | None = None
+    issued_tests: float | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # compared and hashed by identity: a key of VoxelCounts.walks
 class RaySample:
-    """Rays in world space, each walked from tmin to t_end (its closest hit, else its tmax)."""
+    """The case's rays in launch order (backends.launch_order), each walked from tmin to t_end (its
+    closest hit, else its tmax), and how many of them predict_work walks: `size` rays in groups of
+    `width` consecutive ones that the device runs in lock step (simd_lanes), drawn per counted grid
+    (draw). Every ray when that is all of them."""
     origins: np.ndarray  # (n, 3) float64
+    directions: np.ndarray
+    tmin: float
+    t_end: np.ndarray
+    hit: np.ndarray  # bool: Embree found a hit (t_end is it)
+    width: int = 1
+    size: int = RAY_SAMPLE
+    seed: int | None = None  # of the draws (None: from the set's size, so a set draws the same rays)
+
+
+@dataclass(frozen=True, eq=False)
+class Drawn:
+    """The rays of a RaySample that one counted grid's predictions walk: rows in groups of `width`
+    (each group whole, the last one of the set short), each row with the weight of its group (the
+    inverse of its probability of being drawn; one where every ray is walked)."""
+    origins: np.ndarray
     directions: np.ndarray
     tmin: np.ndarray
     t_end: np.ndarray
+    weights: np.ndarray
+    width: int
 
 
-def ray_sample(rays, hit_t: np.ndarray, size: int = RAY_SAMPLE) -> RaySample:
-    """`size` rays of the set, cut at Embree's closest hit `hit_t` (inf = miss): one at a random
-    place in each of `size` equal runs of the set (jittered, seeded by the set's size, so the same
-    set gives the same sample). Not evenly strided: a stride near the image width picks one
-    diagonal of the image (512 of 512 x 512 rays), which can miss a small object's dense cells
-    that carry most of the candidate tests."""
-    size = min(size, rays.count)
-    edges = np.linspace(0, rays.count, size + 1).astype(np.int64)
-    rng = np.random.default_rng(rays.count)
-    idx = np.unique(np.minimum(edges[:-1] + (rng.random(size) * np.diff(edges)).astype(np.int64), rays.count - 1))
-    t_end = np.minimum(np.asarray(hit_t, np.float64)[idx], np.asarray(rays.tmax_array, np.float64)[idx])
+def ray_sample(rays, hit_t: np.ndarray, size: int = RAY_SAMPLE, width: int = 1, seed: int | None = None) -> RaySample:
+    """The rays of the set in launch order, cut at Embree's closest hit `hit_t` (inf = miss), of
+    which `size` in groups of `width` (simd_lanes: lanes in lock step; 1: rays on their own) are
+    walked per counted grid (draw)."""
+    from lsbench.backends import launch_order
+
+    order = launch_order(rays)
+    idx = np.arange(rays.count) if order is None else order
+    hit_t = np.asarray(hit_t, np.float64)[idx]
+    t_end = np.minimum(hit_t, np.asarray(rays.tmax_array, np.float64)[idx])
     return RaySample(np.asarray(rays.origins, np.float64)[idx], np.asarray(rays.directions, np.float64)[idx],
-                     np.full(len(idx), float(rays.tmin)), t_end)
+                     float(rays.tmin), t_end, np.isfinite(hit_t), max(int(width), 1), int(size), seed)
+
+
+def draw(sample: RaySample, counts: VoxelCounts) -> Drawn:
+    """About sample.size rays of `sample` as whole groups of sample.width, drawn for the grid of
+    `counts` (once per grid: counts.walks). A group is drawn with probability proportional to
+    sqrt(c) + mean sqrt(c), c the most candidates in a hit voxel of its rays (0 where none hits),
+    and weighs the inverse of that probability: the rays whose tests dominate the mean are drawn
+    more often, every group keeps at least half the uniform chance, and the weighted means stay
+    unbiased (importance sampling by a quantity known for every ray: Kahn & Marshall 1953). The
+    draw is systematic over the launch order (one jittered draw per equal share of the
+    probability), so the groups spread over the image as well.
+
+    Measured on BMW (512² default camera; esvo 256³ and 512³, grid 134 x 40 x 148; 300 draws of
+    1024 of the 32,768 groups of 8, each group drawn independently): the mean tests per ray within
+    8-9 % rms of every ray's and the issued within 9-11 %, where 8192 rays drawn uniformly put the
+    mean 29-36 % off, and their mean times the issued-to-mean ratio of 1024 uniform groups the
+    issued 46-53 %. Drawn in proportion to c itself the issued were 7-14 % off, to its root 9-10 %."""
+    key = ("draw", sample)  # the object, not its id: a sample freed and another made may share an id
+    if key in counts.walks:
+        return counts.walks[key]
+    n, width = len(sample.t_end), sample.width
+    starts = np.arange(0, n, width)
+    take = max(sample.size // width, 1)
+    if take >= len(starts):
+        rows, weights = np.arange(n), np.ones(n)
+    else:
+        g = counts.geometry
+        res = np.asarray(g.resolution)
+        t = np.where(sample.hit, sample.t_end, 0.0)
+        at = sample.origins + sample.directions * t[:, None]
+        voxel = np.clip(np.floor((at - np.asarray(g.origin)) / np.asarray(g.voxel_size)), 0, res - 1).astype(np.int64)
+        flat = voxel[:, 0] + res[0] * (voxel[:, 1] + res[1] * voxel[:, 2])
+        listed = np.where(sample.hit, counts.counts.ravel()[flat], 0)
+        root = np.sqrt(np.maximum.reduceat(listed.astype(np.float64), starts))
+        q = root + root.mean() if root.any() else np.ones(len(starts))
+        q /= q.sum()
+        rng = np.random.default_rng(n + width if sample.seed is None else sample.seed)
+        picked = np.searchsorted(np.cumsum(q), (np.arange(take) + rng.random(take)) / take, side="right")
+        groups, times = np.unique(np.minimum(picked, len(starts) - 1), return_counts=True)
+        ends = np.minimum(starts[groups] + width, n)
+        rows = np.concatenate([np.arange(a, b) for a, b in zip(starts[groups], ends)])
+        weights = np.repeat(times / q[groups], ends - starts[groups])
+    out = Drawn(sample.origins[rows], sample.directions[rows], np.full(len(rows), sample.tmin), sample.t_end[rows],
+                weights, width)
+    counts.walks[key] = out
+    return out
+
+
+def simd_lanes(device) -> int:
+    """The lanes a SIMD group of `device` runs in lock step (profile/simd.py: llvmpipe's vector
+    width, an NVIDIA warp; PoCL's CPU device runs one work-item at a time), 1 where not known:
+    the width of the ray sample, whose groups' busiest lanes the time model charges."""
+    from lsbench.profile.simd import device_simd_width
+
+    return device_simd_width(device.info())[0] or 1
+
+
+def issued_per_ray(values: np.ndarray, width: int, weights: np.ndarray | None = None) -> float:
+    """Lane-slots per ray that groups of `width` consecutive rows issue for a per-ray counter:
+    each group's max times its rows, over all rows (profile/simd.py, simd_efficiency's
+    denominator); the mean at width 1. weights: per row, equal within a group (Drawn)."""
+    if len(values) == 0:
+        return 0.0
+    w = np.ones(len(values)) if weights is None else np.asarray(weights, np.float64)
+    starts = np.arange(0, len(values), max(width, 1))
+    group_max = np.repeat(np.maximum.reduceat(np.asarray(values, np.float64), starts),
+                          np.diff(np.append(starts, len(values))))
+    return float(group_max @ w) / float(w.sum())
 
 
 def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
@@ -131,7 +228,7 @@ def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, 
     return np.concatenate(out_rays), np.concatenate(out_cells)
 
 
-def _in_grid(sample: RaySample, geometry: GridGeometry, scale: float = 1.0):
+def _in_grid(sample: Drawn, geometry: GridGeometry, scale: float = 1.0):
     """The sample in grid space of `geometry` (cell edge `scale` voxels); t is unchanged."""
     size = np.asarray(geometry.voxel_size, np.float64) * scale
     return (sample.origins - np.asarray(geometry.origin)) / size, sample.directions / size
@@ -139,27 +236,41 @@ def _in_grid(sample: RaySample, geometry: GridGeometry, scale: float = 1.0):
 
 def predict_work(structure: str, counts: VoxelCounts, sample: RaySample, k: int = 0,
                  ls: LineSpaceSample | None = None) -> Work:
-    """Mean iterations, candidate tests and Line Space lookups per ray (module docstring)."""
+    """Mean iterations, candidate tests and Line Space lookups per ray (module docstring), and the
+    iterations and tests that the device's SIMD groups issue per ray (Work), over the rays drawn
+    for this grid (draw), weighted."""
+    drawn = draw(sample, counts)
+    iterations, tests, lookups = _work_per_ray(structure, counts, drawn, k, ls)
+    w = drawn.weights
+    total = max(float(w.sum()), 1e-300)
+    return Work(float(iterations @ w) / total, float(tests @ w) / total, float(lookups @ w) / total,
+                issued_per_ray(iterations, drawn.width, w), issued_per_ray(tests, drawn.width, w))
+
+
+def _work_per_ray(structure: str, counts: VoxelCounts, drawn: Drawn, k: int,
+                  ls: LineSpaceSample | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each drawn ray's iterations, candidate tests and Line Space lookups."""
     info = STRUCTURES[structure]
-    n_rays = max(len(sample.t_end), 1)
-    ray_ids, cells, octree_iterations = _walk(counts, sample, info.cubic_power_of_two)
+    n_rays = len(drawn.t_end)
+    ray_ids, cells, octree_iterations = _walk(counts, drawn, info.cubic_power_of_two)
     listed = counts.counts.ravel()[cells].astype(np.float64)
+    lookups = np.zeros(n_rays)
     if info.line_space:
         with_ls = listed > k
-        tests = listed[~with_ls].sum() + listed[with_ls].sum() * _shaft_tests_per_reference(
-            counts, sample, ray_ids[with_ls], cells[with_ls], k, ls)
-        lookups = float(np.count_nonzero(with_ls))
-    else:
-        tests, lookups = listed.sum(), 0.0
-    iterations = octree_iterations if info.cubic_power_of_two else len(cells)
-    return Work(iterations / n_rays, float(tests) / n_rays, lookups / n_rays)
+        per_reference = _shaft_tests_per_reference(counts, drawn, ray_ids[with_ls], cells[with_ls], k, ls)
+        listed = np.where(with_ls, listed * per_reference, listed)  # a ray's tests in a Line Space cell
+        lookups = np.bincount(ray_ids[with_ls], minlength=n_rays).astype(np.float64)
+    tests = np.bincount(ray_ids, weights=listed, minlength=n_rays)
+    iterations = octree_iterations if info.cubic_power_of_two else np.bincount(ray_ids, minlength=n_rays)
+    return iterations.astype(np.float64), tests, lookups
 
 
-def _shaft_tests_per_reference(counts: VoxelCounts, sample: RaySample, ray_ids: np.ndarray, cells: np.ndarray,
+def _shaft_tests_per_reference(counts: VoxelCounts, drawn: Drawn, ray_ids: np.ndarray, cells: np.ndarray,
                                k: int, ls: LineSpaceSample | None) -> float:
     """Candidates a ray tests in a Line Space cell, per reference of the cell: the sampled cells'
-    candidates per reference of each shaft (cells over K), weighted by how often the sample's rays
-    take that shaft in the Line Space cells they cross (their chords' shafts, linespace.h)."""
+    candidates per reference of each shaft (cells over K), weighted by how often the drawn rays
+    (by their weights) take that shaft in the Line Space cells they cross (their chords' shafts,
+    linespace.h)."""
     if ls is None or len(ls.cell_counts) == 0 or len(cells) == 0:
         return 0.0
     keep = ls.cell_counts > k
@@ -167,10 +278,11 @@ def _shaft_tests_per_reference(counts: VoxelCounts, sample: RaySample, ray_ids: 
     if refs == 0:
         return 0.0
     per_shaft = ls.shaft_candidates[keep].sum(axis=0) / refs
-    o, d = _in_grid(sample, counts.geometry)
+    o, d = _in_grid(drawn, counts.geometry)
+    w = drawn.weights[ray_ids]
     used = np.bincount(chord_shafts(o[ray_ids], d[ray_ids], cells, counts.geometry.resolution, ls.n),
-                       minlength=len(per_shaft))
-    return float(used @ per_shaft) / len(cells)
+                       weights=w, minlength=len(per_shaft))
+    return float(used @ per_shaft) / float(w.sum())
 
 
 def chord_shafts(o: np.ndarray, d: np.ndarray, cells: np.ndarray, res, n: int) -> np.ndarray:
@@ -203,14 +315,14 @@ def chord_shafts(o: np.ndarray, d: np.ndarray, cells: np.ndarray, res, n: int) -
     return np.clip(n**4 * block + n * n * ps + pe, 0, shafts_per_cell(n) - 1)
 
 
-def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndarray, np.ndarray, int]:
-    """The (ray, voxel) pairs of the voxels the sample's rays cross, and for an octree the cells of all levels inside a
-    non-empty parent; once per (counts, sample), whatever N and K."""
-    key = (id(sample), octree)
+def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (ray, voxel) pairs of the voxels the drawn rays cross, and for an octree each ray's cells of all levels
+    inside a non-empty parent; once per (counts, drawn), whatever N and K."""
+    key = (sample, octree)
     if key not in counts.walks:
         o, d = _in_grid(sample, counts.geometry)
         ray_ids, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
-        iterations = 0
+        iterations = np.zeros(len(sample.t_end), np.int64)
         if octree:
             levels = counts.occupancy
             depth = len(levels) - 1
@@ -219,20 +331,24 @@ def _walk(counts: VoxelCounts, sample: RaySample, octree: bool) -> tuple[np.ndar
             enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
             for level in range(1, depth + 1):
                 lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
-                _, level_cells = crossed_cells(lo, lc, enter, leave, (2**level,) * 3)
+                level_rays, level_cells = crossed_cells(lo, lc, enter, leave, (2**level,) * 3)
                 r = 2**level
                 x, y, z = level_cells % r // 2, (level_cells // r) % r // 2, level_cells // (r * r) // 2
                 parents = levels[level - 1]  # over the box only: a parent past it is empty
-                inside = (z < parents.shape[0]) & (y < parents.shape[1]) & (x < parents.shape[2])
-                iterations += int(np.count_nonzero(parents[z[inside], y[inside], x[inside]]))
+                inside = np.flatnonzero((z < parents.shape[0]) & (y < parents.shape[1]) & (x < parents.shape[2]))
+                visited = inside[parents[z[inside], y[inside], x[inside]] != 0]
+                iterations += np.bincount(level_rays[visited], minlength=len(iterations))
         counts.walks[key] = (ray_ids, cells, iterations)
     return counts.walks[key]
 
 
 def seconds_per_ray(structure: str, work: Work, constants) -> float:
-    """Predicted device time of one ray (constants: model/constants.Constants)."""
-    return (constants.ray + constants.step[family(structure)] * work.iterations
-            + constants.test * work.tests + constants.lookup * work.lookups)
+    """Predicted device time of one ray (constants: model/constants.Constants): the walk and the
+    tests as the SIMD groups issue them (Work; `lsbench fit` fits the constants on the same)."""
+    iterations = work.iterations if work.issued_iterations is None else work.issued_iterations
+    tests = work.tests if work.issued_tests is None else work.issued_tests
+    return (constants.ray + constants.step[family(structure)] * iterations
+            + constants.test * tests + constants.lookup * work.lookups)
 
 
 # ---- settings tried, and the choice ---------------------------------------------------------
@@ -486,7 +602,8 @@ def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):
     budget (choice.no_fit_reason(budget_mib) says why)."""
     if not case.auto:
         return case.build_params(), None
-    choice = choose(device, case.structure, scene, ray_sample(rays, hit_t), case.resolution, case.ls_n,
+    choice = choose(device, case.structure, scene, ray_sample(rays, hit_t, width=simd_lanes(device)),
+                    case.resolution, case.ls_n,
                     case.ls_min_candidates, budget_bytes)
     return (choice.params() if choice.chosen else None), choice
 
