@@ -329,15 +329,29 @@ def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray,
             # Both walks cover the scene's box only (svo.h, esvo.h): every level from the ray's
             # entry into the box.
             enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+            rx, ry, _ = (int(v) for v in counts.geometry.resolution)
+            alive = np.arange(len(iterations))
             for level in range(1, depth + 1):
-                lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
-                level_rays, level_cells = crossed_cells(lo, lc, enter, leave, (2**level,) * 3)
-                r = 2**level
-                x, y, z = level_cells % r // 2, (level_cells // r) % r // 2, level_cells // (r * r) // 2
+                if level == depth:  # the leaves: the cells of the walk above, in the box's layout
+                    keep = np.zeros(len(iterations), bool)
+                    keep[alive] = True
+                    level_rays, c = ray_ids[keep[ray_ids]], cells[keep[ray_ids]]
+                    x, y, z = c % rx // 2, (c // rx) % ry // 2, c // (rx * ry) // 2
+                else:
+                    lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
+                    level_rays, level_cells = crossed_cells(lo[alive], lc[alive], enter[alive], leave[alive],
+                                                            (2**level,) * 3)
+                    level_rays = alive[level_rays]
+                    r = 2**level
+                    x, y, z = level_cells % r // 2, (level_cells // r) % r // 2, level_cells // (r * r) // 2
                 parents = levels[level - 1]  # over the box only: a parent past it is empty
                 inside = np.flatnonzero((z < parents.shape[0]) & (y < parents.shape[1]) & (x < parents.shape[2]))
                 visited = inside[parents[z[inside], y[inside], x[inside]] != 0]
-                iterations += np.bincount(level_rays[visited], minlength=len(iterations))
+                here = np.bincount(level_rays[visited], minlength=len(iterations))
+                iterations += here
+                # A ray that met no non-empty parent here crosses no non-empty cell of this level,
+                # so no cell of the next level has a non-empty parent on its way: it is done.
+                alive = alive[here[alive] > 0]
         counts.walks[key] = (ray_ids, cells, iterations)
     return counts.walks[key]
 

@@ -73,7 +73,9 @@ class VoxelCounts:
             box = tuple(-(-n // 2) for n in occ.shape)  # the level above: half, rounded up
             padded = np.zeros(tuple(2 * n for n in box), bool)
             padded[: occ.shape[0], : occ.shape[1], : occ.shape[2]] = occ
-            occ = padded.reshape(box[0], 2, box[1], 2, box[2], 2).any(axis=(1, 3, 5))
+            occ = padded[0::2] | padded[1::2]  # pairwise per axis: far faster than .any over 3 axes
+            occ = occ[:, 0::2] | occ[:, 1::2]
+            occ = occ[:, :, 0::2] | occ[:, :, 1::2]
             levels.append(occ)
         return levels[::-1]
 
