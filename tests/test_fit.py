@@ -66,6 +66,28 @@ def _rays_and_truth(scene, width=32, height=32):
     return rays, embree_closest(scene, rays)[1]
 
 
+def _counted_trace(device, structure, scene, rays, params, ls_n=None):
+    """Build `params`, trace `rays` with the work counters, and count the scene's voxels at the
+    built geometry (the model's statistics): (per-ray work, VoxelCounts, the Line Space sample of
+    ls_n or None)."""
+    from lsbench.model.stats import line_space_samples
+
+    built = backends.build(device, structure, scene, params)
+    try:
+        per_ray = backends.trace(built, rays, work=True).work.astype(float)
+        bufs = _scene_buffers(device, scene)
+        try:
+            counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
+            sample = (line_space_samples(device, bufs, scene.triangle_count, built.geometry, counts, (ls_n,))[ls_n]
+                      if ls_n else None)
+        finally:
+            for b in bufs.values():
+                device.release(b)
+    finally:
+        built.release()
+    return per_ray, counts, sample
+
+
 @pytest.mark.parametrize("structure,resolution", [("grid", (16, 9, 12)), ("svo", (32, 32, 32)),
                                                   ("esvo", (16, 16, 16))])
 def test_predicted_work_matches_the_device_counters(structure, resolution):
@@ -78,15 +100,8 @@ def test_predicted_work_matches_the_device_counters(structure, resolution):
     device = backends.get_device("opencl")
     scene = load_scene("spheres")
     rays, hit_t = _rays_and_truth(scene)
-    built = backends.build(device, structure, scene, BuildParams(resolution=resolution))
-    try:
-        measured = backends.trace(built, rays, work=True).work.astype(float).mean(axis=0)
-        bufs = _scene_buffers(device, scene)
-        counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
-        for b in bufs.values():
-            device.release(b)
-    finally:
-        built.release()
+    per_ray, counts, _ = _counted_trace(device, structure, scene, rays, BuildParams(resolution=resolution))
+    measured = per_ray.mean(axis=0)
     work = predict_work(structure, counts, ray_sample(rays, hit_t, size=rays.count))
     assert work.iterations == pytest.approx(measured[0], rel=0.02)
     assert work.tests == pytest.approx(measured[1], rel=0.05)
@@ -107,15 +122,7 @@ def test_predicted_issued_work_matches_the_lock_step_groups_of_llvmpipe(structur
     assert width > 1, f"{device.info()['device']}: no lock-step group width known (profile/simd.py)"
     scene = load_scene("spheres")
     rays, hit_t = _rays_and_truth(scene)
-    built = backends.build(device, structure, scene, BuildParams(resolution=resolution))
-    try:
-        per_ray = backends.trace(built, rays, work=True).work.astype(float)
-        bufs = _scene_buffers(device, scene)
-        counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
-        for b in bufs.values():
-            device.release(b)
-    finally:
-        built.release()
+    per_ray, counts, _ = _counted_trace(device, structure, scene, rays, BuildParams(resolution=resolution))
     order = backends.launch_order(rays)
     issued = [per_ray[:, c].mean() / simd_efficiency(per_ray[:, c], order, width) for c in (0, 1)]
     work = predict_work(structure, counts, ray_sample(rays, hit_t, size=rays.count, width=width))
@@ -188,21 +195,13 @@ def test_predicted_line_space_work_is_near_the_device_counters(structure, resolu
     candidates tested (the sample's candidates per shaft, weighted by the rays' chords): an
     estimate, since the sampled cells stand for all (measured: within 7 % on spheres)."""
     from lsbench.model.cost import predict_work, ray_sample
-    from lsbench.model.stats import line_space_samples
 
     device = backends.get_device("opencl")
     scene = load_scene("spheres")
     rays, hit_t = _rays_and_truth(scene)
-    built = backends.build(device, structure, scene, BuildParams(resolution=resolution, ls_n=n, ls_min_candidates=k))
-    try:
-        measured = backends.trace(built, rays, work=True).work.astype(float).mean(axis=0)
-        bufs = _scene_buffers(device, scene)
-        counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
-        sample = line_space_samples(device, bufs, scene.triangle_count, built.geometry, counts, (n,))[n]
-        for b in bufs.values():
-            device.release(b)
-    finally:
-        built.release()
+    per_ray, counts, sample = _counted_trace(device, structure, scene, rays,
+                                             BuildParams(resolution=resolution, ls_n=n, ls_min_candidates=k), n)
+    measured = per_ray.mean(axis=0)
     work = predict_work(structure, counts, ray_sample(rays, hit_t, size=rays.count), k, sample)
     assert work.iterations == pytest.approx(measured[0], rel=0.02)
     assert work.lookups == pytest.approx(measured[2], rel=0.05)
