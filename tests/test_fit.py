@@ -114,8 +114,8 @@ def test_predicted_issued_work_matches_the_lock_step_groups_of_llvmpipe(structur
     the model charges each group's busiest lane: with every ray in the sample (all the groups)
     its issued iterations and tests are those of the device's counters grouped in launch order
     (profile/simd.py: mean / SIMD efficiency), within the walk's own 2 % / 5 %, and above the means."""
-    from lsbench.model.cost import predict_work, ray_sample, simd_lanes
-    from lsbench.profile.simd import simd_efficiency
+    from lsbench.model.cost import predict_work, ray_sample
+    from lsbench.profile.simd import simd_efficiency, simd_lanes
 
     device = backends.get_device("glsl")
     width = simd_lanes(device)
@@ -181,7 +181,7 @@ def test_issued_work_is_each_groups_busiest_lane():
     over all rows; the mean at width 1."""
     import numpy as np
 
-    from lsbench.model.cost import issued_per_ray
+    from lsbench.profile.simd import issued_per_ray
 
     values = np.array([0, 0, 0, 8, 1, 1, 1, 1, 5], float)
     assert issued_per_ray(values, 1) == pytest.approx(values.mean())

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lsbench.profile.simd import device_simd_width
+from lsbench.profile.simd import simd_lanes
 from lsbench.report.format import slug
 
 FAMILIES = ("grid", "svo", "esvo")
@@ -73,7 +73,7 @@ def load_constants(device, folder: Path | None = None) -> Constants:
         return DEFAULTS[device.backend]
     try:
         data = json.loads(path.read_text())
-        lanes = device_simd_width(info)[0] or 1
+        lanes = simd_lanes(device)
         if data.get("simd_width") != lanes:  # fitted on other work than the model predicts here
             fallback = DEFAULTS[device.backend]
             return dataclasses.replace(fallback, source=(

@@ -42,6 +42,7 @@ from lsbench.backends.structures.linespace import ListSizes, offset_entries, sha
 from lsbench.model.bytes import BytesPrediction, predict_bytes
 from lsbench.model.constants import family, load_constants
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
+from lsbench.profile.simd import issued_per_ray, simd_lanes
 
 GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
 OCTREE_LEVELS = tuple(range(3, 10))  # 8^3 .. 512^3, those whose box has at most the voxels allowed
@@ -66,12 +67,12 @@ class Work:
     """Mean work per ray, as the profiling counters count it (iterations_per_ray, ...), and the
     lane-slots per ray that SIMD groups of the sample's width issue for the walk and the tests
     (each group runs every loop as often as its busiest lane: profile/simd.py; at width 1 they
-    are the means). None: not predicted (a setting ruled out), taken as the means."""
+    are the means)."""
     iterations: float
     tests: float
     lookups: float
-    issued_iterations: float | None = None
-    issued_tests: float | None = None
+    issued_iterations: float
+    issued_tests: float
 
 
 @dataclass(frozen=True, eq=False)  # compared and hashed by identity: a key of VoxelCounts.walks
@@ -161,28 +162,6 @@ def draw(sample: RaySample, counts: VoxelCounts) -> Drawn:
                 weights, width)
     counts.walks[key] = out
     return out
-
-
-def simd_lanes(device) -> int:
-    """The lanes a SIMD group of `device` runs in lock step (profile/simd.py: llvmpipe's vector
-    width, an NVIDIA warp; PoCL's CPU device runs one work-item at a time), 1 where not known:
-    the width of the ray sample, whose groups' busiest lanes the time model charges."""
-    from lsbench.profile.simd import device_simd_width
-
-    return device_simd_width(device.info())[0] or 1
-
-
-def issued_per_ray(values: np.ndarray, width: int, weights: np.ndarray | None = None) -> float:
-    """Lane-slots per ray that groups of `width` consecutive rows issue for a per-ray counter:
-    each group's max times its rows, over all rows (profile/simd.py, simd_efficiency's
-    denominator); the mean at width 1. weights: per row, equal within a group (Drawn)."""
-    if len(values) == 0:
-        return 0.0
-    w = np.ones(len(values)) if weights is None else np.asarray(weights, np.float64)
-    starts = np.arange(0, len(values), max(width, 1))
-    group_max = np.repeat(np.maximum.reduceat(np.asarray(values, np.float64), starts),
-                          np.diff(np.append(starts, len(values))))
-    return float(group_max @ w) / float(w.sum())
 
 
 def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
@@ -359,10 +338,8 @@ def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray,
 def seconds_per_ray(structure: str, work: Work, constants) -> float:
     """Predicted device time of one ray (constants: model/constants.Constants): the walk and the
     tests as the SIMD groups issue them (Work; `lsbench fit` fits the constants on the same)."""
-    iterations = work.iterations if work.issued_iterations is None else work.issued_iterations
-    tests = work.tests if work.issued_tests is None else work.issued_tests
-    return (constants.ray + constants.step[family(structure)] * iterations
-            + constants.test * tests + constants.lookup * work.lookups)
+    return (constants.ray + constants.step[family(structure)] * work.issued_iterations
+            + constants.test * work.issued_tests + constants.lookup * work.lookups)
 
 
 # ---- settings tried, and the choice ---------------------------------------------------------
@@ -633,7 +610,7 @@ def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, cons
     line_space = STRUCTURES[structure].line_space
     no_cells = line_space and counts.above(k)[0] == 0  # K over every cell: no Line Space is built
     if ls is not None and ls.limit and not no_cells:  # the device cannot build this N here
-        return Option(res, n, k, BytesPrediction({}, False), Work(0.0, 0.0, 0.0), math.inf, False, ls.limit)
+        return Option(res, n, k, BytesPrediction({}, False), Work(0.0, 0.0, 0.0, 0.0, 0.0), math.inf, False, ls.limit)
     work = predict_work(structure, counts, sample, k, None if no_cells else ls)
     if line_space and ls is None and not no_cells:  # pruned: the offsets alone are over the budget
         b = BytesPrediction({"ls_shaft_offsets": _offsets_bytes(counts, n, k)}, False)

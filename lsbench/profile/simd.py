@@ -50,11 +50,30 @@ def group_efficiency(values: np.ndarray, order: np.ndarray | None, width: int) -
     return eff, maxes
 
 
+def issued_per_ray(values: np.ndarray, width: int, weights: np.ndarray | None = None) -> float:
+    """Lane-slots per ray that groups of `width` consecutive rows issue for a per-ray counter:
+    each group's max times its rows (the last group short), over all rows; the mean at width 1.
+    weights: per row, equal within a group (the cost model's drawn rays, model/cost.py)."""
+    if len(values) == 0:
+        return 0.0
+    w = np.ones(len(values)) if weights is None else np.asarray(weights, np.float64)
+    starts = np.arange(0, len(values), max(width, 1))
+    group_max = np.repeat(np.maximum.reduceat(np.asarray(values, np.float64), starts),
+                          np.diff(np.append(starts, len(values))))
+    return float(group_max @ w) / float(w.sum())
+
+
 def simd_efficiency(values: np.ndarray, order: np.ndarray | None, width: int) -> float | None:
     """sum(c) / sum(lanes x max(c)) over the groups (the module docstring), None when no lane counted."""
-    groups = groups_in_dispatch_order(values.astype(np.float64), order, width)
-    issued = sum(len(g) * float(g.max()) for g in groups)
-    return float(sum(float(g.sum()) for g in groups) / issued) if issued > 0 else None
+    v = np.asarray(values, np.float64) if order is None else np.asarray(values, np.float64)[order]
+    issued = issued_per_ray(v, width) * len(v)
+    return float(v.sum() / issued) if issued > 0 else None
+
+
+def simd_lanes(device) -> int:
+    """The lanes a SIMD group of `device` (a backends Device) runs in lock step, 1 where not known
+    (device_simd_width): the width of the cost model's ray groups and of its fitted constants."""
+    return device_simd_width(device.info())[0] or 1
 
 
 def per_ray_group_efficiency(values: np.ndarray, order: np.ndarray | None, width: int) -> np.ndarray:
