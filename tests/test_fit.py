@@ -295,19 +295,26 @@ def test_a_structure_over_the_budget_fails_before_its_build_naming_both_sizes(st
     assert built["memory_bytes"] == predicted if exact else built["memory_bytes"] > predicted
 
 
-def test_a_built_structure_over_the_budget_fails_naming_both_sizes():
-    """A Line Space whose exact part fits but whose candidates pass the budget is built, measured
-    and then failed, its reason naming the built size and the budget."""
+@pytest.mark.parametrize("structure,backend,resolution", [("grid-ls", "opencl", "8"), ("grid-ls", "glsl", "8"),
+                                                        ("esvo-ls", "opencl", "8"), ("bvh-ls", "opencl", "8")])
+def test_a_line_space_over_the_budget_stops_after_its_count_pass_naming_both_sizes(structure, backend, resolution):
+    """A Line Space whose exact part fits but whose candidates pass the budget stops once its count
+    pass has sized the lists, before they are filled: the case fails, its reason naming the bytes
+    the structure would take (exactly what it takes when built) and the budget; nothing is built."""
     from lsbench.inputs.scenario import Case, RunSettings
     from lsbench.running.execute import execute
 
-    case = Case("spheres", "grid-ls", "opencl", "8", 2, rays="primary", width=16, height=16)
+    case = Case("spheres", structure, backend, resolution, 2, rays="primary", width=16, height=16)
     settings = RunSettings(width=16, height=16, repeats=1, embree_timing=False, budget_mib=64.0)
     full = execute(case, settings)["memory_bytes"]
     budget = math.floor((full - 1) / 2**20 * 1000) / 1000  # the structure passes it by < 1 KiB, its offsets do not
     rec = execute(case, dataclasses.replace(settings, budget_mib=budget))
-    assert rec["status"] == "failed" and rec["memory_bytes"] == full
-    assert f"takes {full / 2**20:.1f} MiB, over the device-memory budget of {budget:g} MiB" in rec["reason"]
+    assert rec["status"] == "failed" and rec["memory_bytes"] is None and rec["build_seconds"] is None
+    assert rec["predicted"] == {"memory_bytes": full, "memory_bytes_exact": True}
+    assert (f"takes {full / 2**20:.1f} MiB (known from its Line Space count pass; the lists were not filled), "
+            f"over the device-memory budget of {budget:g} MiB") in rec["reason"]
+    at = execute(case, dataclasses.replace(settings, budget_mib=full / 2**20))  # exactly its bytes: it fits
+    assert at["status"] == "ok" and at["memory_bytes"] == full
 
 
 def test_auto_with_nothing_under_the_budget_fails_naming_the_smallest():

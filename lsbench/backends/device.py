@@ -22,6 +22,21 @@ class DeviceLimitError(RuntimeError):
     The message names the limit; the harness records the case as failed and goes on."""
 
 
+class OverBudgetError(DeviceLimitError):
+    """A build given a device-memory budget (BuildParams.budget_bytes) stopped as soon as it knew
+    the structure would take more: `needed_bytes`, exact (a Line Space build knows it after its
+    count pass, before the long fill)."""
+
+    def __init__(self, needed_bytes: int, budget_bytes: int, when: str):
+        self.needed_bytes, self.budget_bytes, self.when = int(needed_bytes), int(budget_bytes), when
+        super().__init__(self.reason(budget_bytes / 2**20))
+
+    def reason(self, budget_mib: float) -> str:
+        """The one-line reason, the budget as the user gave it (MiB)."""
+        return (f"the structure takes {self.needed_bytes / 2**20:.1f} MiB ({self.when}), over the device-memory "
+                f"budget of {budget_mib:g} MiB (budget_mib, --budget)")
+
+
 class DeviceError(RuntimeError):
     """The driver reported an error (compile failure, GL error after a dispatch, ...)."""
 

@@ -3,8 +3,10 @@ counters -> timing -> record. Runs inside a worker process (lsbench/running/runn
 (`lsbench trace`). The record it returns is lsbench.results.record.Record as a dict."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import statistics
+import time
 import traceback
 from pathlib import Path
 
@@ -81,6 +83,24 @@ def chosen_fields(params) -> dict:
                 resolution_z=params.resolution[2], ls_n=params.ls_n, ls_min_candidates=params.ls_min_candidates)
 
 
+def _build_within(device, structure: str, scene, params, budget_bytes: int | None):
+    """Build `params` under the device-memory budget: (built, None, seconds) when it fits, else
+    (built or None, the OverBudgetError, seconds): None where the build stopped as soon as it knew
+    (a Line Space after its count pass, BuildParams.budget_bytes), the structure where only the
+    built one showed it."""
+    from lsbench import backends
+    from lsbench.backends.device import OverBudgetError
+
+    t0 = time.perf_counter()
+    try:
+        built = backends.build(device, structure, scene, dataclasses.replace(params, budget_bytes=budget_bytes))
+    except OverBudgetError as exc:
+        return None, exc, time.perf_counter() - t0
+    if budget_bytes is not None and built.memory_bytes > budget_bytes:
+        return built, OverBudgetError(built.memory_bytes, budget_bytes, "built"), built.build_seconds
+    return built, None, built.build_seconds
+
+
 def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hits: str | None = None,
             heatmap_dir: str | None = None, scene=None, rays=None, truth=None) -> dict:
     """Run one case and return its record (a dict, lsbench.results.record). Driver limits and
@@ -128,25 +148,27 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
                 raise DeviceLimitError(
                     f"the structure needs {'' if exact else 'at least '}{at_least / 2**20:.1f} MiB (predicted from "
                     f"the count pass, not built), over the device-memory budget of {budget:g} MiB (budget_mib, --budget)")
-        built = backends.build(device, case.structure, scene, params)
-        while (choice is not None and budget_bytes is not None and built.memory_bytes > budget_bytes
-               and choice.next_after_overshoot(built.memory_bytes, built.build_seconds)):
+        built, over, seconds = _build_within(device, case.structure, scene, params, budget_bytes)
+        while choice is not None and over is not None and choice.next_after_overshoot(over.needed_bytes, seconds):
             # The chosen Line Space's estimated lists came out over the budget: the next that fits.
-            built.release()
-            built = None
+            if built is not None:
+                built.release()
+                built = None
             params = choice.params()
             rec.update(**chosen_fields(params), auto=choice.record())
-            built = backends.build(device, case.structure, scene, params)
+            built, over, seconds = _build_within(device, case.structure, scene, params, budget_bytes)
         if choice is not None:
             rec.update(auto=choice.record())
-        rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
-                   buffers=built.memory(), stats=built.stats)
-        if choice is not None:
-            rec.update(predicted=choice.predicted(device, built))
-        if budget_bytes is not None and built.memory_bytes > budget_bytes:
+        if built is not None:
+            rec.update(build_seconds=built.build_seconds, memory_bytes=built.memory_bytes,
+                       buffers=built.memory(), stats=built.stats)
+            if choice is not None:
+                rec.update(predicted=choice.predicted(device, built))
+        elif choice is None and over is not None:  # stopped: the bytes its count pass gave, exact
+            rec.update(predicted={"memory_bytes": over.needed_bytes, "memory_bytes_exact": True})
+        if over is not None:
             again = f" (auto: {len(choice.rebuilt)} chosen settings built over it)" if choice is not None else ""
-            raise DeviceLimitError(f"the structure takes {built.memory_bytes / 2**20:.1f} MiB, over the "
-                                   f"device-memory budget of {budget:g} MiB (budget_mib, --budget){again}")
+            raise DeviceLimitError(over.reason(budget) + again)
         hits = backends.trace(built, rays)
         rec.update(trace_slices=hits.slices, slice_budget=hits.slice_budget)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)

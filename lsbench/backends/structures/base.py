@@ -93,6 +93,10 @@ class BuildParams:
     bounding_cube: bool = False  # a grid on an octree's geometry (GridGeometry.over_bounds cubic): compare with octrees
     leaf_size: int = 0  # bvh, bvh-ls: most triangles per leaf (0 = the structure's default; bvh.LEAF_SIZES)
     options: dict = field(default_factory=dict)
+    # Not part of the setting: the device-memory budget of the structure. A build that learns it
+    # would take more stops there with OverBudgetError (a Line Space after its count pass, before
+    # its lists are filled: the fill is a third of a Line Space build). None: no budget.
+    budget_bytes: int | None = None
 
 
 @dataclass

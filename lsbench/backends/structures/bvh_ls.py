@@ -72,7 +72,8 @@ class LineSpaceBVH:
             device.dispatch(CELLS, slots, {**scene_buffers, "bvh_nodes": buffers["bvh_nodes"], "bvh_links": buffers["bvh_links"],
                                            "ls_ids": ls_ids, "ls_cell_boxes": boxes, "ls_cell_ranges": ranges}, u)
             cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
-            ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n)
+            kept = sum(b.nbytes for b in buffers.values()) + ls_ids.nbytes
+            ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
         except BaseException:
             for b in made + list(buffers.values()):
                 device.release(b)

@@ -57,8 +57,10 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     device.dispatch(GLS_CELLS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_ids": ls_ids,
                                       "ls_cell_boxes": boxes, "ls_cell_ranges": ranges}, u)
     cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
+    # What the structure keeps besides its Line Spaces (the plain lists shrink below when unread).
+    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + (4 if n_cells == non_empty else buffers["voxel_tris"].nbytes)
     try:
-        ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n)
+        ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
     except Exception:
         for b in (boxes, ranges, ls_ids, buffers["voxel_offsets"], buffers["voxel_tris"]):
             device.release(b)

@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..device import Device, DeviceBuffer, DeviceLimitError
+from ..device import Device, DeviceBuffer, DeviceLimitError, OverBudgetError
 from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform
 from .base import GridGeometry
 
@@ -451,11 +451,13 @@ def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dic
 
 
 def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry, cells: Cells,
-                     n: int) -> LineSpaces:
+                     n: int, budget_bytes: int | None = None, other_bytes: int = 0) -> LineSpaces:
     """Line Spaces of all cells: cull masks -> count (with pair bits) -> the distinct sets of each
     cell -> scans -> fill of each set's list, all on the device, in batches of cells (their masks
     and bits), groups of cells (the sets' hash tables) and chunks of candidates (the driver's loop
-    budget)."""
+    budget). budget_bytes (BuildParams.budget_bytes): where the structure, its `other_bytes` and
+    these Line Spaces together, would pass it, the build stops with OverBudgetError once the
+    count pass and the sets' scans have sized the lists, before they are allocated and filled."""
     n = check_n(n)
     per_cell = shafts_per_cell(n)
     patches = 6 * n * n
@@ -601,6 +603,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
 
         device.dispatch(bound(LS_SET_LEN), n_shafts, sets_bufs, u)
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
+        if budget_bytes is not None:  # the two arrays' bytes, as allocated below
+            needed = other_bytes + 4 * offset_entries(cells.count, n, n_sets) + 4 * max(set_refs, 1)
+            if needed > budget_bytes:
+                raise OverBudgetError(needed, budget_bytes, "known from its Line Space count pass; the lists "
+                                      "were not filled")
         offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells.count, n, n_sets))
         device.check_memory("ls_shaft_offsets", 4 * offsets.entries)
         offset_bufs = offsets.alloc(device, zero=False)

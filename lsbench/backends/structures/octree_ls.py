@@ -103,7 +103,8 @@ class LineSpaceOctree:
             n_cells = made.pop("n_cells")
             cells = linespace.Cells(n_cells, made["ls_cell_boxes"], made["ls_cell_ranges"],
                                     buffers["voxel_tris"], stats["references"])
-            ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n)
+            kept = sum(b.nbytes for b in buffers.values()) + made["ls_ids"].nbytes
+            ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
         except BaseException:
             for b in list(made.values()) + list(buffers.values()):
                 if isinstance(b, DeviceBuffer):
