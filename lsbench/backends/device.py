@@ -25,7 +25,7 @@ class DeviceLimitError(RuntimeError):
 class OverBudgetError(DeviceLimitError):
     """A build given a device-memory budget (BuildParams.budget_bytes) stopped as soon as it knew
     the structure would take more: `needed_bytes`, exact (a Line Space build knows it after its
-    count pass, before the long fill)."""
+    count pass, before the fill)."""
 
     def __init__(self, needed_bytes: int, budget_bytes: int, when: str):
         self.needed_bytes, self.budget_bytes, self.when = int(needed_bytes), int(budget_bytes), when

@@ -95,7 +95,7 @@ class BuildParams:
     options: dict = field(default_factory=dict)
     # Not part of the setting: the device-memory budget of the structure. A build that learns it
     # would take more stops there with OverBudgetError (a Line Space after its count pass, before
-    # its lists are filled: the fill is a third of a Line Space build). None: no budget.
+    # its lists are filled: on llvmpipe that halved such a case, docs/fit.md). None: no budget.
     budget_bytes: int | None = None
 
 
