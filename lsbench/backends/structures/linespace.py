@@ -603,12 +603,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
 
         device.dispatch(bound(LS_SET_LEN), n_shafts, sets_bufs, u)
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
+        offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below
-            needed = other_bytes + 4 * offset_entries(cells.count, n, n_sets) + 4 * max(set_refs, 1)
+            needed = other_bytes + 4 * offset_count + 4 * max(set_refs, 1)
             if needed > budget_bytes:
                 raise OverBudgetError(needed, budget_bytes, "known from its Line Space count pass; the lists "
                                       "were not filled")
-        offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells.count, n, n_sets))
+        offsets = split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_count)
         device.check_memory("ls_shaft_offsets", 4 * offsets.entries)
         offset_bufs = offsets.alloc(device, zero=False)
         kept.extend(offset_bufs.values())
