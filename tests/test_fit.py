@@ -176,6 +176,52 @@ def test_drawn_rays_predict_a_heavy_tail_of_tests_without_bias():
             assert np.all(np.abs(got / want - 1) < 0.3), (width, field, got.min() / want, got.max() / want)
 
 
+def test_crossed_cells_are_the_cells_each_segment_passes_through():
+    """cost.crossings finds, per ray, the cells the 3D-DDA steps through: against a brute-force
+    slab test of every cell of a 7 x 4 x 5 grid, the cells a segment passes through for a length
+    are all there, each once, and nothing else (rays from outside and inside, ending inside, axis-
+    parallel, from integer corners: there a crossing of two planes at one point may take either
+    cell that touches it). Each crossing's plane is the leaf plane it crossed (0: the entry)."""
+    import numpy as np
+
+    from lsbench.model.cost import crossings
+
+    res = (7, 4, 5)
+    rng = np.random.default_rng(3)
+    n = 600
+    o = rng.uniform(-2, 9, (n, 3))
+    d = rng.normal(size=(n, 3))
+    o[:100] = rng.uniform(0, 4, (100, 3))  # inside the grid
+    d[100:150, 1] = 0.0  # parallel to a plane
+    d[150:200, :2] = 0.0  # along an axis
+    o[200:260] = np.floor(o[200:260])  # on cell corners
+    t1 = np.where(np.arange(n) % 3 == 0, rng.uniform(0, 3, n), 50.0)  # some end inside the grid
+    rays, x, y, z, plane = crossings(o, d, 0.0, t1, res)
+    cells = np.stack([x, y, z], axis=1)
+    lo = np.stack(np.meshgrid(*(np.arange(r) for r in res), indexing="ij"), axis=-1).reshape(-1, 3).astype(float)
+    for i in range(n):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta, tb = (lo - o[i]) / d[i], (lo + 1 - o[i]) / d[i]
+            inside = (o[i] >= lo) & (o[i] <= lo + 1)
+            near = np.where(d[i] != 0, np.minimum(ta, tb), np.where(inside, -np.inf, np.inf)).max(axis=1)
+            far = np.where(d[i] != 0, np.maximum(ta, tb), np.where(inside, np.inf, -np.inf)).min(axis=1)
+        overlap = np.minimum(far, t1[i]) - np.maximum(near, 0.0)
+        through = {tuple(c) for c in lo[overlap > 1e-9].astype(int)}
+        touching = {tuple(c) for c in lo[overlap >= -1e-9].astype(int)}
+        got = [tuple(c) for c in cells[rays == i]]
+        assert len(got) == len(set(got)), i
+        if i < 200 or i >= 260:  # no ties: exactly the cells passed through
+            assert set(got) == through, i
+        else:
+            assert set(got) <= touching and len(got) >= len(through), i
+        on_plane = plane[rays == i]
+        assert (on_plane == 0).sum() == (len(got) > 0), i
+    # a crossing's plane is a face of its cell on some axis
+    crossed = plane > 0
+    faces = np.stack([cells[crossed], cells[crossed] + 1], axis=2)
+    assert np.all(np.any(faces == plane[crossed, None, None], axis=(1, 2)))
+
+
 def test_issued_work_is_each_groups_busiest_lane():
     """issued_per_ray: per group of `width` rows its max times its rows (the last group short),
     over all rows; the mean at width 1."""

@@ -177,34 +177,59 @@ def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
 
 
 def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
-    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1, front
-    to back: (ray index, flat cell x + Rx (y + Ry z)) pairs. Vectorised over the rays."""
-    res = np.asarray(res, np.float64)
-    enter, leave, inv = box_span(o, d, t0, t1, res)
+    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1:
+    (ray index, flat cell x + Rx (y + Ry z)) pairs, in no particular order (crossings)."""
+    rays, x, y, z, _ = crossings(o, d, t0, t1, res)
+    rx, ry, _ = (int(v) for v in res)
+    return rays, x + rx * (y + ry * z)
+
+
+def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
+    """The cells of the grid [0, res] that each ray crosses between t0 and t1 as (ray, x, y, z,
+    plane), int32 arrays: the cell where the ray enters the grid (plane 0), then one cell per grid
+    plane it crosses (plane: that plane's index on its axis, 1 .. R - 1). These are the cells the
+    3D-DDA of Amanatides & Woo (1987) steps through, one per crossing, but found for all crossings at
+    once instead of one step of every ray at a time (a numpy loop of as many steps as the longest
+    ray's, which took most of the choice). The crossing at a plane of one axis puts the ray in the
+    cell of the other two axes that holds the crossing point, clamped to the cells its own span covers;
+    where two planes are crossed at one point either order is taken (the DDA's order there is its
+    rounding's). A plane whose index is a multiple of 2^s is also a plane of the grid 2^s times
+    coarser (an octree's upper levels: _walk)."""
+    resf = np.asarray(res, np.float64)
+    enter, leave, inv = box_span(o, d, t0, t1, resf)
     rows = np.flatnonzero(enter <= leave)
-    p = o[rows] + d[rows] * enter[rows, None]
-    cell = np.clip(np.floor(p), 0, res - 1).astype(np.int64)
-    dr, invr = d[rows], inv[rows]
-    step = np.where(dr > 0, 1, -1)
-    with np.errstate(invalid="ignore"):
-        next_t = np.where(dr > 0, (cell + 1 - o[rows]) * invr, np.where(dr < 0, (cell - o[rows]) * invr, np.inf))
-    delta = np.abs(invr)
-    leave = leave[rows]
-    r = res.astype(np.int64)
-    out_rays, out_cells = [], []
-    while len(rows):
-        out_rays.append(rows)
-        out_cells.append(cell[:, 0] + r[0] * (cell[:, 1] + r[1] * cell[:, 2]))
-        axis = np.argmin(next_t, axis=1)
-        k = np.arange(len(rows))
-        t_next = next_t[k, axis]
-        cell[k, axis] += step[k, axis]
-        next_t[k, axis] += delta[k, axis]
-        more = (t_next < leave) & np.all((cell >= 0) & (cell < r), axis=1)
-        rows, cell, next_t, step, delta, leave = (a[more] for a in (rows, cell, next_t, step, delta, leave))
-    if not out_rays:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(out_rays), np.concatenate(out_cells)
+    r = [int(v) for v in res]
+    enter, leave = enter[rows], leave[rows]
+    oc = [o[rows, a] for a in range(3)]
+    dc = [d[rows, a] for a in range(3)]
+    first, low, high, count = [], [], [], []
+    for a in range(3):
+        f = np.clip(np.floor(oc[a] + dc[a] * enter), 0, r[a] - 1)
+        with np.errstate(invalid="ignore"):
+            p = oc[a] + dc[a] * leave  # where the ray leaves: planes strictly before it are crossed
+            up = np.where(dc[a] > 0, np.maximum(np.minimum(np.ceil(p) - 1, r[a] - 1) - f, 0), 0)
+            down = np.where(dc[a] < 0, np.maximum(f - np.maximum(np.floor(p) + 1, 1) + 1, 0), 0)
+        first.append(f)
+        low.append(f - down)
+        high.append(f + up)
+        count.append((up + down).astype(np.int64))
+    parts = [(np.arange(len(rows)), *first, np.zeros(len(rows)))]
+    for a in range(3):
+        n = count[a]
+        total = int(n.sum())
+        if total == 0:
+            continue
+        who = np.repeat(np.arange(len(rows)), n)
+        j = np.arange(1, total + 1, dtype=np.float64) - np.repeat((np.cumsum(n) - n).astype(np.float64), n)
+        sign = np.sign(dc[a])[who]
+        cell = first[a][who] + sign * j
+        plane = np.where(sign > 0, cell, cell + 1)
+        t = (plane - oc[a][who]) * inv[rows[who], a]
+        xyz = [cell if b == a else np.clip(np.floor(oc[b][who] + dc[b][who] * t), low[b][who], high[b][who])
+               for b in range(3)]
+        parts.append((who, *xyz, plane))
+    who, x, y, z, plane = (np.concatenate([part[i] for part in parts]).astype(np.int32) for i in range(5))
+    return rows.astype(np.int32)[who], x, y, z, plane
 
 
 def _in_grid(sample: Drawn, geometry: GridGeometry, scale: float = 1.0):
@@ -300,37 +325,32 @@ def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray,
     key = (sample, octree)
     if key not in counts.walks:
         o, d = _in_grid(sample, counts.geometry)
-        ray_ids, cells = crossed_cells(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+        rx, ry, _ = (int(v) for v in counts.geometry.resolution)
+        ray_ids, x, y, z, plane = crossings(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+        cells = x + rx * (y + ry * z)
         iterations = np.zeros(len(sample.t_end), np.int64)
         if octree:
+            # Both walks cover the scene's box only (svo.h, esvo.h), every level from the ray's entry
+            # into it. The box's cells are the cube's leaves from its corner, so the cell of level
+            # depth - s a ray is in is its leaf's coordinates >> s, and it enters a new one exactly
+            # at the leaf planes whose index is a multiple of 2^s: the leaf crossings kept at each
+            # level up are those, and their coordinates shifted.
             levels = counts.occupancy
             depth = len(levels) - 1
-            # Both walks cover the scene's box only (svo.h, esvo.h): every level from the ray's
-            # entry into the box.
-            enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
-            rx, ry, _ = (int(v) for v in counts.geometry.resolution)
-            alive = np.arange(len(iterations))
-            for level in range(1, depth + 1):
-                if level == depth:  # the leaves: the cells of the walk above, in the box's layout
-                    keep = np.zeros(len(iterations), bool)
-                    keep[alive] = True
-                    level_rays, c = ray_ids[keep[ray_ids]], cells[keep[ray_ids]]
-                    x, y, z = c % rx // 2, (c // rx) % ry // 2, c // (rx * ry) // 2
-                else:
-                    lo, lc = _in_grid(sample, counts.geometry, 2.0 ** (depth - level))
-                    level_rays, level_cells = crossed_cells(lo[alive], lc[alive], enter[alive], leave[alive],
-                                                            (2**level,) * 3)
-                    level_rays = alive[level_rays]
-                    r = 2**level
-                    x, y, z = level_cells % r // 2, (level_cells // r) % r // 2, level_cells // (r * r) // 2
-                parents = levels[level - 1]  # over the box only: a parent past it is empty
-                inside = np.flatnonzero((z < parents.shape[0]) & (y < parents.shape[1]) & (x < parents.shape[2]))
-                visited = inside[parents[z[inside], y[inside], x[inside]] != 0]
-                here = np.bincount(level_rays[visited], minlength=len(iterations))
-                iterations += here
-                # A ray that met no non-empty parent here crosses no non-empty cell of this level,
-                # so no cell of the next level has a non-empty parent on its way: it is done.
-                alive = alive[here[alive] > 0]
+            # Each crossing's coarseness: the trailing zeros of its plane's index (the entries: every
+            # level's). Sorted coarsest first, level depth - s takes the crossings of coarseness >= s.
+            lowest_bit = (plane & -plane).astype(np.float64)
+            coarseness = np.where(plane == 0, depth, np.frexp(lowest_bit)[1] - 1).astype(np.int8)
+            order = np.argsort(-coarseness, kind="stable")
+            xs, ys, zs, rays = x[order], y[order], z[order], ray_ids[order]
+            kept = np.bincount(coarseness, minlength=depth + 1)[::-1].cumsum()[::-1]  # kept[s]: coarseness >= s
+            for s in range(depth):
+                n = kept[s]
+                parents = levels[depth - s - 1]  # (z, y, x) over the box: every parent of a box cell is in it
+                py, px = parents.shape[1], parents.shape[2]
+                up = s + 1
+                inside_parent = parents.ravel()[(xs[:n] >> up) + px * ((ys[:n] >> up) + py * (zs[:n] >> up))]
+                iterations += np.bincount(rays[:n][inside_parent], minlength=len(iterations))
         counts.walks[key] = (ray_ids, cells, iterations)
     return counts.walks[key]
 
