@@ -213,23 +213,31 @@ def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
         low.append(f - down)
         high.append(f + up)
         count.append((up + down).astype(np.int64))
-    parts = [(np.arange(len(rows)), *first, np.zeros(len(rows)))]
+    totals = [int(n.sum()) for n in count]
+    out = np.empty((5, len(rows) + sum(totals)), np.int32)  # ray, x, y, z, plane: the entries, then each axis'
+    out[0, : len(rows)] = rows
+    out[1:4, : len(rows)] = first
+    out[4, : len(rows)] = 0
+    at = len(rows)
     for a in range(3):
-        n = count[a]
-        total = int(n.sum())
+        n, total = count[a], totals[a]
         if total == 0:
             continue
+        part = slice(at, at + total)
+        at += total
         who = np.repeat(np.arange(len(rows)), n)
-        j = np.arange(1, total + 1, dtype=np.float64) - np.repeat((np.cumsum(n) - n).astype(np.float64), n)
+        j = np.arange(1, total + 1) - np.repeat(np.cumsum(n) - n, n)  # the ray's j-th crossing of this axis
         sign = np.sign(dc[a])[who]
         cell = first[a][who] + sign * j
         plane = np.where(sign > 0, cell, cell + 1)
-        t = (plane - oc[a][who]) * inv[rows[who], a]
-        xyz = [cell if b == a else np.clip(np.floor(oc[b][who] + dc[b][who] * t), low[b][who], high[b][who])
-               for b in range(3)]
-        parts.append((who, *xyz, plane))
-    who, x, y, z, plane = (np.concatenate([part[i] for part in parts]).astype(np.int32) for i in range(5))
-    return rows.astype(np.int32)[who], x, y, z, plane
+        t = (plane - oc[a][who]) * inv[rows, a][who]
+        out[0, part] = rows[who]
+        out[1 + a, part] = cell
+        out[4, part] = plane
+        for b in range(3):
+            if b != a:
+                out[1 + b, part] = np.clip(np.floor(oc[b][who] + dc[b][who] * t), low[b][who], high[b][who])
+    return out[0], out[1], out[2], out[3], out[4]
 
 
 def _in_grid(sample: Drawn, geometry: GridGeometry, scale: float = 1.0):
