@@ -3,8 +3,9 @@ cheapest setting that fits a device-memory budget (issue 17).
 
 Work, predicted from the scene's statistics (model/stats.py) and a sample of the case's own rays
 cut at Embree's closest hit (the walk of every traversal ends in the cell of the closest hit,
-shaders/common/trace.h: trace_done), walked on the host through the cells the 3D-DDA of Amanatides &
-Woo (1987) visits in the counted grids (crossings) (the model's arithmetic, not a structure: nothing here builds or traces):
+shaders/common/trace.h: trace_done), walked on the host through the cells that the 3D-DDA of
+Amanatides & Woo (1987) visits in the counted grids (`crossings`; the model's arithmetic, not a
+structure: nothing here builds or traces):
 - grid (thesis 3.3.1): one iteration per voxel the ray crosses, the voxel's candidates tested;
 - svo / esvo (3.3.2, 5.2): one iteration per cell, on every level, that the ray crosses inside a
   non-empty parent (both walks visit exactly those, front to back), the leaves' candidates tested;
