@@ -177,14 +177,6 @@ def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
     return np.maximum(t0, lo.max(axis=1)), np.minimum(t1, hi.min(axis=1)), inv
 
 
-def crossed_cells(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res) -> tuple[np.ndarray, np.ndarray]:
-    """Every cell of the grid [0, res] (cell edge 1) that each ray crosses between t0 and t1:
-    (ray index, flat cell x + Rx (y + Ry z)) pairs, in no particular order (crossings)."""
-    rays, x, y, z, _ = crossings(o, d, t0, t1, res)
-    rx, ry, _ = (int(v) for v in res)
-    return rays, x + rx * (y + ry * z)
-
-
 def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
     """The cells of the grid [0, res] that each ray crosses between t0 and t1 as (ray, x, y, z,
     plane), int32 arrays: the cell where the ray enters the grid (plane 0), then one cell per grid
