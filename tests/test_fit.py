@@ -176,7 +176,7 @@ def test_drawn_rays_predict_a_heavy_tail_of_tests_without_bias():
             assert np.all(np.abs(got / want - 1) < 0.3), (width, field, got.min() / want, got.max() / want)
 
 
-def test_crossed_cells_are_the_cells_each_segment_passes_through():
+def test_crossings_are_the_cells_each_segment_passes_through():
     """cost.crossings finds, per ray, the cells the 3D-DDA steps through: against a brute-force
     slab test of every cell of a 7 x 4 x 5 grid, the cells a segment passes through for a length
     are all there, each once, and nothing else (rays from outside and inside, ending inside, axis-
