@@ -278,11 +278,9 @@ def _shaft_tests_per_reference(counts: VoxelCounts, drawn: Drawn, ray_ids: np.nd
     linespace.h)."""
     if ls is None or len(ls.cell_counts) == 0 or len(cells) == 0:
         return 0.0
-    keep = ls.cell_counts > k
-    refs = int(ls.cell_counts[keep].sum())
-    if refs == 0:
+    per_shaft = ls.shaft_candidates_per_reference(k)
+    if per_shaft is None:
         return 0.0
-    per_shaft = ls.shaft_candidates[keep].sum(axis=0) / refs
     o, d = _in_grid(drawn, counts.geometry)
     w = drawn.weights[ray_ids]
     used = np.bincount(chord_shafts(o[ray_ids], d[ray_ids], cells, counts.geometry.resolution, ls.n),

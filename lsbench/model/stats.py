@@ -21,10 +21,11 @@ from lsbench.backends.device import Device, DeviceLimitError
 from lsbench.backends.structures import grid, linespace
 from lsbench.backends.structures.base import GridGeometry
 
-# Cells of the Line Space sample: spread evenly over the non-empty cells sorted by their count, so
-# the dense cells (which a threshold K keeps) are in it as well as the sparse ones; fewer (at least
-# LS_SAMPLE_MIN) where the sample's triangle/shaft tests would pass LS_SAMPLE_PAIRS (coarse grids of
-# dense scenes: 32 cells of 5000 triangles at N = 4 are 600 M tests, half a minute on PoCL here).
+# Cells of the Line Space sample: spread evenly over the voxel references of the non-empty cells
+# sorted by their count (each reference equally likely: a cell in proportion to its count), so the
+# cells over a threshold K, which hold most references, are most of the sample (sample_cells); fewer
+# (at least LS_SAMPLE_MIN) where the sample's triangle/shaft tests would pass LS_SAMPLE_PAIRS (coarse
+# grids of dense scenes: 32 cells of 5000 triangles at N = 4 are 600 M tests, half a minute on PoCL here).
 LS_SAMPLE_CELLS = 32
 LS_SAMPLE_MIN = 4
 LS_SAMPLE_PAIRS = 2**24
@@ -110,6 +111,16 @@ class LineSpaceSample:
     # Each sampled cell's distinct candidate sets and their triangle ids (what its lists store).
     cell_sets: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     cell_set_references: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # Each sampled cell's weight in the ratio estimators: times drawn / its count (sample_cells).
+    weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def _ratio(self, per_cell: np.ndarray, k: int):
+        """Per voxel reference of the cells with more than k candidates: sum w x per_cell / sum w x
+        count over the sampled ones (Hansen & Hurwitz 1943 for cells drawn in proportion to their
+        count: the mean of per_cell / count over the draws); None when none is sampled."""
+        keep = self.cell_counts > k
+        refs = float(self.weights[keep] @ self.cell_counts[keep])
+        return (np.tensordot(self.weights[keep], per_cell[keep], axes=1) / refs) if refs else None
 
     @property
     def cell_candidates(self) -> np.ndarray:
@@ -117,36 +128,48 @@ class LineSpaceSample:
         return self.shaft_candidates.sum(axis=1)
 
     def lists_per_reference(self, k: int) -> tuple[float, float]:
-        """Distinct sets and their triangle ids per voxel reference in the sampled cells with more
-        than k candidates (ratio estimators, as candidates_per_reference); (0, 0) when none is sampled."""
-        keep = self.cell_counts > k
-        refs = int(self.cell_counts[keep].sum())
-        if not refs:
-            return 0.0, 0.0
-        return float(self.cell_sets[keep].sum()) / refs, float(self.cell_set_references[keep].sum()) / refs
+        """Distinct sets and their triangle ids per voxel reference in the cells with more than k
+        candidates (those that get a Line Space at K = k), estimated from the sample (_ratio);
+        (0, 0) when none is sampled."""
+        sets, ids = self._ratio(self.cell_sets, k), self._ratio(self.cell_set_references, k)
+        return (0.0, 0.0) if sets is None else (float(sets), float(ids))
 
     def candidates_per_reference(self, k: int) -> float:
-        """Shaft candidates per voxel reference in the sampled cells with more than k candidates
-        (the ratio estimator of the cells that get a Line Space at K = k); 0 when none is sampled."""
-        keep = self.cell_counts > k
-        refs = int(self.cell_counts[keep].sum())
-        return float(self.cell_candidates[keep].sum()) / refs if refs else 0.0
+        """Shaft candidates per voxel reference in the cells with more than k candidates (_ratio);
+        0 when none is sampled."""
+        ratio = self._ratio(self.cell_candidates, k)
+        return 0.0 if ratio is None else float(ratio)
+
+    def shaft_candidates_per_reference(self, k: int) -> np.ndarray | None:
+        """Each shaft's candidates per voxel reference in the cells with more than k candidates
+        (_ratio; model/cost.py weights them by the shafts the rays take); None when none is sampled."""
+        return self._ratio(self.shaft_candidates, k)
 
 
-def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int = 0) -> np.ndarray:
-    """Flat voxel ids of the sample: `size` non-empty voxels evenly spaced in count order, fewer
-    when their triangles x `shafts` pass LS_SAMPLE_PAIRS."""
+def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The sample's flat voxel ids and each one's weight (times drawn / its count): `size` draws
+    evenly spaced over the voxel references of the non-empty voxels in count order (systematic
+    sampling in proportion to the count), fewer when the cells drawn x `shafts` pass LS_SAMPLE_PAIRS.
+    Drawn evenly over the cells instead, the few dense cells that a threshold K keeps were 1-3 of 32
+    and their stored sets came out 0.72-0.80 of the truth; drawn this way, 0.96-0.98 (Sponza, svo-ls
+    128^3 N=3, K = 16-64: docs/fit.md)."""
     flat = counts.counts.ravel()
     non_empty = np.flatnonzero(flat)
     order = non_empty[np.argsort(flat[non_empty], kind="stable")]
+    cumulative = np.cumsum(flat[order], dtype=np.float64)
 
-    def pick(k: int) -> np.ndarray:
-        return order if len(order) <= k else order[np.linspace(0, len(order) - 1, k).round().astype(np.int64)]
-    cells = pick(size)
+    def draw(k: int) -> tuple[np.ndarray, np.ndarray]:
+        at = np.searchsorted(cumulative, (np.arange(k) + 0.5) * (cumulative[-1] / k), side="right")
+        cells, times = np.unique(order[np.minimum(at, len(order) - 1)], return_counts=True)
+        return cells, times / flat[cells]
+
+    if len(order) == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    cells, weights = draw(size)
     pairs = int(flat[cells].sum(dtype=np.int64)) * shafts
     if pairs > LS_SAMPLE_PAIRS:
-        cells = pick(max(LS_SAMPLE_MIN, int(len(cells) * LS_SAMPLE_PAIRS / pairs)))
-    return cells
+        cells, weights = draw(max(LS_SAMPLE_MIN, int(size * LS_SAMPLE_PAIRS / pairs)))
+    return cells, weights
 
 
 def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
@@ -168,7 +191,7 @@ def line_space_samples(device: Device, scene_buffers: dict, n_tris: int, geometr
         for n in ns:
             try:
                 out[n] = _sample(device, scene_buffers, geometry, lists["voxel_tris"], offsets,
-                                 sample_cells(counts, size, linespace.shafts_per_cell(n)), n)
+                                 *sample_cells(counts, size, linespace.shafts_per_cell(n)), n)
             except DeviceLimitError as exc:  # e.g. llvmpipe's loop budget in the densest cell (sampled)
                 out[n] = _limited(n, exc)
         return out
@@ -183,8 +206,9 @@ def _limited(n: int, exc: Exception) -> LineSpaceSample:
 
 
 def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_tris, offsets: np.ndarray,
-            cells: np.ndarray, n: int) -> LineSpaceSample:
-    """The Line Spaces of `cells` (flat voxel ids) at N = n, and each one's shaft candidates."""
+            cells: np.ndarray, weights: np.ndarray, n: int) -> LineSpaceSample:
+    """The Line Spaces of `cells` (flat voxel ids, with their weights: sample_cells) at N = n,
+    and each one's shaft candidates."""
     rx, ry, _ = geometry.resolution
     x, y, z = cells % rx, (cells // rx) % ry, cells // (rx * ry)
     lo = np.stack([x, y, z], axis=1).astype(np.float32)
@@ -201,7 +225,7 @@ def _sample(device: Device, scene_buffers: dict, geometry: GridGeometry, voxel_t
         begin, end = linespace.shaft_ranges(words, ls.shafts_per_cell)
         sets, set_refs = linespace.cell_set_sizes(words, ls.shafts_per_cell)
         return LineSpaceSample(n, cell_counts, (end - begin).reshape(len(cells), ls.shafts_per_cell),
-                               cell_sets=sets, cell_set_references=set_refs)
+                               cell_sets=sets, cell_set_references=set_refs, weights=np.asarray(weights, np.float64))
     finally:
         for b in made:
             device.release(b)
