@@ -405,9 +405,15 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     files = list(tmp_path.glob("opencl-*.json"))
     assert len(files) == 1
     data = json.loads(files[0].read_text())
-    assert len(data["cases"]) == len(fit.CALIBRATION) and all(c["seconds_per_ray"] > 0 for c in data["cases"])
-    assert min(data["ray"], data["test"], data["lookup"], *data["step"].values()) >= 0
+    assert len(data["cases"]) == len(fit.CALIBRATION) + len(fit.LAUNCH_CALIBRATION)
+    assert all(c["seconds_per_ray"] > 0 for c in data["cases"])
+    # the launch cases ran with LAUNCH_SCALE^2 times the rays, so launch and ray come apart
+    assert sorted({c["rays"] for c in data["cases"]}) == [16 * 16, 16 * 16 * fit.LAUNCH_SCALE**2]
+    assert min(data["launch"], data["ray"], data["test"], data["lookup"], *data["step"].values()) >= 0
     assert max(data["test"], *data["step"].values()) > 0
+    # each structure its step, a Line Space structure's at least its plain walk's (the extra is >= 0)
+    assert set(data["step"]) == {"grid", "svo", "esvo", "grid-ls", "svo-ls", "esvo-ls"}
+    assert all(data["step"][f"{f}-ls"] >= data["step"][f] for f in ("grid", "svo", "esvo"))
     assert data["simd_width"] == 1  # PoCL's CPU device: one work-item at a time, issued work = mean
     assert all(c["issued_tests_per_ray"] == c["candidate_tests_per_ray"] for c in data["cases"])
     assert "written" in capsys.readouterr().out
@@ -418,6 +424,12 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     _, rec = _auto_record("grid", 1.0)
     assert rec["status"] == "ok" and rec["auto"]["constants"].startswith("defaults (opencl")
     assert "fitted for SIMD groups of 8 lanes" in rec["auto"]["constants"]
+    stale = dict(data, step={f: data["step"][f] for f in ("grid", "svo", "esvo")})
+    del stale["launch"]  # a file of one step per walk and no launch term: not used, and why
+    files[0].write_text(json.dumps(stale))
+    _, rec = _auto_record("grid", 1.0)
+    assert rec["status"] == "ok" and rec["auto"]["constants"].startswith("defaults (opencl")
+    assert "has no step grid-ls, step svo-ls, step esvo-ls, launch constant" in rec["auto"]["constants"]
     files[0].write_text("{not json")  # a damaged file: the defaults, and the record says why
     _, rec = _auto_record("grid", 1.0)
     assert rec["status"] == "ok" and rec["auto"]["constants"].startswith("defaults (opencl")

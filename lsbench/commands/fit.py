@@ -1,6 +1,6 @@
 """`lsbench fit`: measure the cost model's constants on this machine's devices (model/cost.py:
-seconds per ray = ray + step[family] x iterations + test x candidate tests + lookup x Line Space
-lookups) from a short calibration sweep, and store them per device (model/constants.py), where
+seconds per ray = launch / rays + ray + step[structure] x iterations + test x candidate tests +
+lookup x Line Space lookups) from a short calibration sweep, and store them per device (model/constants.py), where
 every "auto" case on that device then finds them.
 
 The sweep: every structure at a few settings on small built-in scenes (the same cases as `lsbench
@@ -22,16 +22,23 @@ NAME = "fit"
 HELP = "measure the cost model's constants per device (for \"auto\" settings) and store them"
 DEFAULT_SCENES = ("atrium", "spheres")
 DEFAULT_SIZE = "128x128"
-# (structure, resolution, N): steps, tests and lookups in different proportions, so the fit can
+# (structure, resolution, N, K): steps, tests and lookups in different proportions, so the fit can
 # tell the constants apart, in the range where the auto choice decides (5-250 candidate tests per
 # ray on the two scenes, not the 500-1000 of a 4^3 or 16^3 grid, whose long lists cost less per
-# test and pulled the test constant down: docs/fit.md, "The constants"); 16,384 rays per launch
-# amortize the launch. PoCL ~15 s, llvmpipe ~25 s on two cores.
+# test and pulled the test constant down: docs/fit.md, "The constants"); each Line Space structure
+# at K = 0 (a lookup in every non-empty cell) and K = 16 (fewer lookups, more list tests on the
+# same walk), so its own step constant and the lookup's come apart.
 CALIBRATION = (
-    ("grid", "32", 0), ("grid", "64", 0), ("grid", "128", 0),
-    ("svo", "64", 0), ("svo", "128", 0), ("esvo", "64", 0), ("esvo", "128", 0),
-    ("grid-ls", "32", 2), ("svo-ls", "64", 2), ("esvo-ls", "64", 2),
+    ("grid", "32", 0, 0), ("grid", "64", 0, 0), ("grid", "128", 0, 0),
+    ("svo", "64", 0, 0), ("svo", "128", 0, 0), ("esvo", "64", 0, 0), ("esvo", "128", 0, 0),
+    ("grid-ls", "32", 2, 0), ("grid-ls", "32", 2, 16), ("grid-ls", "64", 2, 0),
+    ("svo-ls", "64", 2, 0), ("svo-ls", "64", 2, 16), ("esvo-ls", "64", 2, 0), ("esvo-ls", "64", 2, 16),
 )
+# Run again with LAUNCH_SCALE^2 times the rays, so the launch's fixed cost (shared by its rays)
+# comes apart from a ray's: at one size the two are one column. On the development machine a
+# launch cost 4-12 ms (two runs on each backend, 2026-12-02), 250-750 ns of each of 16,384 rays.
+LAUNCH_CALIBRATION = (("grid", "64", 0, 0), ("esvo", "128", 0, 0))
+LAUNCH_SCALE = 2
 
 
 def setup_arguments(sub) -> None:
@@ -61,35 +68,40 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenario import Case, RunSettings
     from lsbench.inputs.scenes import load_scene
-    from lsbench.model.constants import COLUMNS, design_row, fit_constants
+    from lsbench.model.constants import COLUMNS, design_row, fit_constants, steps_from_fit
     from lsbench.running.environment import record_env
     from lsbench.running.execute import execute
 
     env = record_env()
-    settings = RunSettings(width=width, height=height, repeats=repeats, warmup=1, embree_timing=False)
     rows, seconds, cases, device, simd_width = [], [], [], None, 1
-    for scene_name in scenes:
-        scene = load_scene(scene_name)
-        rays = make_rays("primary", scene, width, height)
-        for structure, resolution, n in CALIBRATION:
-            case = Case(scene_name, structure, backend, resolution, n, 0, "primary", width, height)
-            rec = execute(case, settings, env, scene=scene, rays=rays)
-            if rec["status"] != "ok" or rec.get("iterations_per_ray") is None:
-                log(f"  {case.key}: left out ({rec['reason'] or rec.get('work_counters_error')})")
-                continue
-            device, simd_width = rec["device"], rec.get("simd_width_device") or 1
-            per_ray = rec["trace_seconds"] / rec["ray_count"]
-            work = (rec["iterations_per_ray"], rec["candidate_tests_per_ray"], rec["linespace_lookups_per_ray"])
-            issued = (_issued(work[0], rec.get("simd_efficiency_steps_device")),
-                      _issued(work[1], rec.get("simd_efficiency_tests_device")))
-            rows.append(design_row(structure, *issued, work[2]))
-            seconds.append(per_ray)
-            cases.append({"scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
-                          "iterations_per_ray": work[0], "candidate_tests_per_ray": work[1],
-                          "linespace_lookups_per_ray": work[2], "issued_iterations_per_ray": issued[0],
-                          "issued_tests_per_ray": issued[1], "seconds_per_ray": per_ray})
-            log(f"  {case.key}: {per_ray * 1e9:.1f} ns/ray, {work[0]:.1f} steps, {work[1]:.1f} tests "
-                f"({issued[0]:.1f}, {issued[1]:.1f} issued by groups of {simd_width}), {work[2]:.1f} lookups")
+    big = (width * LAUNCH_SCALE, height * LAUNCH_SCALE)
+    runs = [(s, (width, height), c) for s in scenes for c in CALIBRATION] + [(s, big, c) for s in scenes
+                                                                              for c in LAUNCH_CALIBRATION]
+    loaded = (None, None)
+    for scene_name, (w, h), (structure, resolution, n, k) in runs:
+        if loaded != (scene_name, (w, h)):
+            scene, loaded = load_scene(scene_name), (scene_name, (w, h))
+            rays = make_rays("primary", scene, w, h)
+        settings = RunSettings(width=w, height=h, repeats=repeats, warmup=1, embree_timing=False)
+        case = Case(scene_name, structure, backend, resolution, n, k, "primary", w, h)
+        rec = execute(case, settings, env, scene=scene, rays=rays)
+        if rec["status"] != "ok" or rec.get("iterations_per_ray") is None:
+            log(f"  {case.key}: left out ({rec['reason'] or rec.get('work_counters_error')})")
+            continue
+        device, simd_width = rec["device"], rec.get("simd_width_device") or 1
+        per_ray = rec["trace_seconds"] / rec["ray_count"]
+        work = (rec["iterations_per_ray"], rec["candidate_tests_per_ray"], rec["linespace_lookups_per_ray"])
+        issued = (_issued(work[0], rec.get("simd_efficiency_steps_device")),
+                  _issued(work[1], rec.get("simd_efficiency_tests_device")))
+        rows.append(design_row(structure, rec["ray_count"], *issued, work[2]))
+        seconds.append(per_ray)
+        cases.append({"scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
+                      "ls_min_candidates": k, "rays": rec["ray_count"],
+                      "iterations_per_ray": work[0], "candidate_tests_per_ray": work[1],
+                      "linespace_lookups_per_ray": work[2], "issued_iterations_per_ray": issued[0],
+                      "issued_tests_per_ray": issued[1], "seconds_per_ray": per_ray})
+        log(f"  {case.key}: {per_ray * 1e9:.1f} ns/ray, {work[0]:.1f} steps, {work[1]:.1f} tests "
+            f"({issued[0]:.1f}, {issued[1]:.1f} issued by groups of {simd_width}), {work[2]:.1f} lookups")
     if len(rows) < len(COLUMNS):
         raise RuntimeError(f"{backend}: only {len(rows)} calibration cases ran, fewer than the "
                            f"{len(COLUMNS)} constants")
@@ -99,7 +111,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     c = dict(zip(COLUMNS, (float(v) for v in coef)))
     return {"device": device, "backend": backend, "driver": rec.get("driver"), "commit": env.get("commit"),
             "made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "ray": c["ray"], "step": {f: c[f"step_{f}"] for f in ("grid", "svo", "esvo")},
+            "launch": c["launch"], "ray": c["ray"], "step": steps_from_fit(coef),
             "test": c["test"], "lookup": c["lookup"], "simd_width": simd_width, "residual": residual,
             "cases": cases}
 
@@ -114,18 +126,19 @@ def _issued(mean: float, efficiency: float | None) -> float:
 def run(args) -> int:
     from pathlib import Path
 
-    from lsbench.model.constants import save_constants
+    from lsbench.model.constants import STEPS, save_constants
 
     if args.check:
         return print_check(args.check)
     width, height = parse_size(args.size)
     out = []
     for backend in args.backends:
-        say(f"lsbench fit: {backend}, {len(CALIBRATION) * len(args.scenes)} calibration cases")
+        say(f"lsbench fit: {backend}, {(len(CALIBRATION) + len(LAUNCH_CALIBRATION)) * len(args.scenes)} "
+            "calibration cases")
         data = calibrate(backend, args.scenes, width, height, args.repeats)
         path = save_constants(data, backend, data["device"], Path(args.out_dir) if args.out_dir else None)
-        say(f"{backend} ({data['device']}): ray {data['ray'] * 1e9:.1f} ns, step grid/svo/esvo "
-            + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in ("grid", "svo", "esvo"))
+        say(f"{backend} ({data['device']}): launch {data['launch'] * 1e3:.2f} ms, ray {data['ray'] * 1e9:.1f} ns, step {'/'.join(STEPS)} "
+            + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in STEPS)
             + f" ns, test {data['test'] * 1e9:.2f} ns, lookup {data['lookup'] * 1e9:.2f} ns; "
             f"fit residual {100 * data['residual']:.0f} % rms; written {path}")
         out.append(data)

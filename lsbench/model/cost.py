@@ -14,7 +14,7 @@ structure: nothing here builds or traces):
   sampled rays' chords through such cells take that shaft (an estimate: the sampled cells stand for
   all); other cells test their list.
 
-Time per ray = ray + step[family] x iterations + test x candidate tests + lookup x lookups, the
+Time per ray = launch / rays + ray + step[structure] x iterations + test x candidate tests + lookup x lookups, the
 constants per device (model/constants.py: measured by `lsbench fit`, or documented defaults), the
 iterations and tests as the device's SIMD groups issue them: a group of lanes in lock step runs
 each loop as often as its busiest lane (profile/simd.py), so on llvmpipe (8 lanes) a test that one
@@ -41,7 +41,7 @@ from lsbench.backends.structures import STRUCTURES
 from lsbench.backends.structures.base import GridGeometry
 from lsbench.backends.structures.linespace import ListSizes, offset_entries, shafts_per_cell
 from lsbench.model.bytes import BytesPrediction, predict_bytes
-from lsbench.model.constants import family, load_constants
+from lsbench.model.constants import load_constants
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
 from lsbench.profile.simd import issued_per_ray, simd_lanes
 
@@ -90,6 +90,11 @@ class RaySample:
     width: int = 1
     size: int = RAY_SAMPLE
     seed: int | None = None  # of the draws (None: from the set's size, so a set draws the same rays)
+
+    @property
+    def rays(self) -> int:
+        """The rays of the set: one launch (each shares its fixed cost)."""
+        return len(self.t_end)
 
 
 @dataclass(frozen=True, eq=False)
@@ -354,10 +359,11 @@ def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray,
     return counts.walks[key]
 
 
-def seconds_per_ray(structure: str, work: Work, constants) -> float:
-    """Predicted device time of one ray (constants: model/constants.Constants): the walk and the
-    tests as the SIMD groups issue them (Work; `lsbench fit` fits the constants on the same)."""
-    return (constants.ray + constants.step[family(structure)] * work.issued_iterations
+def seconds_per_ray(structure: str, work: Work, constants, rays: int) -> float:
+    """Predicted device time of one ray of a launch of `rays` (constants: model/constants.Constants):
+    its share of the launch, the walk and the tests as the SIMD groups issue them (Work; `lsbench
+    fit` fits the constants on the same)."""
+    return (constants.launch / max(rays, 1) + constants.ray + constants.step[structure] * work.issued_iterations
             + constants.test * work.issued_tests + constants.lookup * work.lookups)
 
 
@@ -633,7 +639,7 @@ def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, cons
     work = predict_work(structure, counts, sample, k, None if no_cells else ls)
     if line_space and ls is None and not no_cells:  # pruned: the offsets alone are over the budget
         b = BytesPrediction({"ls_shaft_offsets": _offsets_bytes(counts, n, k)}, False)
-        return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), False)
+        return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants, sample.rays), False)
     try:
         b = predict_bytes(device, structure, counts, n, k, sample=None if no_cells else ls,
                           lists=ListSizes(0, 0) if no_cells else None)
@@ -641,7 +647,7 @@ def _option(device, structure, counts, sample, res, n, k, ls, budget_bytes, cons
     except DeviceLimitError:  # more buffers than the driver allows: never fits
         b, over_device = BytesPrediction({}, False), True
     fits = not over_device and (budget_bytes is None or b.total <= budget_bytes)
-    return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants), fits)
+    return Option(res, n, k, b, work, seconds_per_ray(structure, work, constants, sample.rays), fits)
 
 
 def bytes_at_least(device, structure: str, scene, params) -> tuple[int, bool]:
