@@ -1,7 +1,7 @@
 """`lsbench fit`: measure the cost model's constants on this machine's devices (model/cost.py:
 seconds per ray = launch / rays + ray + step[structure] x iterations + test x candidate tests +
-lookup x Line Space lookups) from a short calibration sweep, and store them per device (model/constants.py), where
-every "auto" case on that device then finds them.
+lookup x Line Space lookups) from a short calibration sweep, and store them per device
+(model/constants.py), where every "auto" case on that device then finds them.
 
 The sweep: every structure at a few settings on small built-in scenes (the same cases as `lsbench
 trace`, in this process), each with its work counters (iterations, tests, lookups per ray) and its
@@ -137,8 +137,8 @@ def run(args) -> int:
             "calibration cases")
         data = calibrate(backend, args.scenes, width, height, args.repeats)
         path = save_constants(data, backend, data["device"], Path(args.out_dir) if args.out_dir else None)
-        say(f"{backend} ({data['device']}): launch {data['launch'] * 1e3:.2f} ms, ray {data['ray'] * 1e9:.1f} ns, step {'/'.join(STEPS)} "
-            + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in STEPS)
+        say(f"{backend} ({data['device']}): launch {data['launch'] * 1e3:.2f} ms, ray {data['ray'] * 1e9:.1f} ns, "
+            f"step {'/'.join(STEPS)} " + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in STEPS)
             + f" ns, test {data['test'] * 1e9:.2f} ns, lookup {data['lookup'] * 1e9:.2f} ns; "
             f"fit residual {100 * data['residual']:.0f} % rms; written {path}")
         out.append(data)

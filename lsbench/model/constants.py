@@ -1,8 +1,7 @@
 """The cost model's constants per device (model/cost.py: seconds per ray = launch / rays in the
 launch + ray + step[structure] x iterations + test x candidate tests + lookup x Line Space lookups,
-the iterations and tests as the
-device's SIMD groups issue them), fitted by `lsbench fit` from the work counters and device times
-of a short calibration sweep, and stored one JSON file per device:
+the iterations and tests as the device's SIMD groups issue them), fitted by `lsbench fit` from the
+work counters and device times of a short calibration sweep, and stored one JSON file per device:
 
     $LSBENCH_FIT_DIR/<backend>-<device slug>.json      (default folder ~/.cache/lsbench/fit)
     {"device": ..., "backend": ..., "driver": ..., "launch": s, "ray": s, "step": {structure: s for STEPS},
