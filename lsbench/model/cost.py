@@ -20,7 +20,8 @@ lookups (rays: the set's, one launch), the constants per device (model/constants
 them: a group of lanes in lock step runs each loop as often as its busiest lane (profile/simd.py),
 so on llvmpipe (8 lanes) a test that one ray of eight makes costs the group as much as eight
 (BMW, esvo 256³ -> 512³: 2.7 -> 1.0 tests per ray, 7.0 -> 2.5 issued, measured 253 -> 199 ns per
-ray; fitted on the means, the model put the two within 1 ns). On a device of one lane per group (PoCL's CPU device) issued = mean.
+ray; fitted on the means, the model put the two within 1 ns). On a device of one lane per group
+(PoCL's CPU device) issued = mean.
 
 Settings tried for "auto" (Ize, Shirley & Parker 2007: a uniform grid wants cells ~ lambda x
 triangles, per axis in proportion to the scene's extents): grids at lambda in GRID_LAMBDAS, non-cubic;
