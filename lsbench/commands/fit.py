@@ -111,7 +111,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     c = dict(zip(COLUMNS, (float(v) for v in coef)))
     return {"device": device, "backend": backend, "driver": rec.get("driver"), "commit": env.get("commit"),
             "made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "launch": c["launch"], "ray": c["ray"], "step": steps_from_fit(coef),
+            "launch": c["launch"], "ray": c["ray"], "step": steps_from_fit(c),
             "test": c["test"], "lookup": c["lookup"], "simd_width": simd_width, "residual": residual,
             "cases": cases}
 

@@ -78,10 +78,10 @@ def load_constants(device, folder: Path | None = None) -> Constants:
     path = constants_path(device.backend, info["device"], folder)
     if not path.is_file():
         return DEFAULTS[device.backend]
+    fallback = DEFAULTS[device.backend]
     try:
         data = json.loads(path.read_text())
         lanes = simd_lanes(device)
-        fallback = DEFAULTS[device.backend]
         if data.get("simd_width") != lanes:  # fitted on other work than the model predicts here
             return dataclasses.replace(fallback, source=(
                 f"{fallback.source}; {path} was fitted for SIMD groups of {data.get('simd_width', 'unknown')} "
@@ -96,7 +96,6 @@ def load_constants(device, folder: Path | None = None) -> Constants:
         return Constants(float(data["ray"]), {f: float(data["step"][f]) for f in STEPS}, float(data["test"]),
                          float(data["lookup"]), float(data["launch"]), str(path), extra)
     except (OSError, ValueError, KeyError, TypeError) as exc:  # a damaged file: say so, use the defaults
-        fallback = DEFAULTS[device.backend]
         return dataclasses.replace(fallback, source=f"{fallback.source}; {path} unreadable "
                                                     f"({type(exc).__name__}: {exc}; run `lsbench fit` again)")
 
@@ -123,9 +122,8 @@ def design_row(structure: str, rays: int, iterations: float, tests: float, looku
             + [iterations if structure == f"{f}-ls" else 0.0 for f in FAMILIES] + [tests, lookups])
 
 
-def steps_from_fit(coef) -> dict:
-    """Each structure's step constant from fitted coefficients (COLUMNS order)."""
-    c = dict(zip(COLUMNS, (float(v) for v in coef)))
+def steps_from_fit(c: dict) -> dict:
+    """Each structure's step constant from the fitted coefficients by name (COLUMNS)."""
     steps = {f: c[f"step_{f}"] for f in FAMILIES}
     steps.update({f"{f}-ls": c[f"step_{f}"] + c[f"extra_step_{f}-ls"] for f in FAMILIES})
     return steps
