@@ -3,6 +3,8 @@ the buffers it leaves), its Morton sort is a sort, and the traversals agree with
 built-in scenes and Sponza, closest and any hit, on both backends."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -200,6 +202,78 @@ def test_hits_agree_with_embree(device, structure, scene_name):
             assert built.stats["linespace_leaves"] > 0 and built.stats["linespace_skipped_leaves"] > 0
     finally:
         built.release()
+
+
+@pytest.mark.parametrize("width", [8, 16])
+def test_packets_find_the_single_ray_hits(monkeypatch, width):
+    """The packet traversal (OpenCL: `width` rays per work item, shaders/common/bvh.h BVH_PACKET)
+    against the single-ray kernel and Embree: a ray count that leaves the last packet part empty,
+    rays from inside the scene in every direction (lanes with different dominant axes), rays with a
+    tmin and a per-ray tmax, and any-hit shadow rays. The same closest distance per ray; another
+    triangle only at a tie (a box entry rounded past the hit leaves the single ray's walk one tie
+    short), which Embree's check explains."""
+    device = backends.get_device("opencl")
+    scene = load_scene("atrium")
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    lo, hi = scene.bounds
+    light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+    primary = primary_rays(scene, 37, 29)
+    rng = np.random.default_rng(5)
+    clipped = dataclasses.replace(primary, name="clipped", tmin=0.25 * light,
+                                  tmax=rng.uniform(0.5, 8.0, primary.count).astype(np.float32) * light,
+                                  width=0, height=0, _hash=None)
+    sets = [primary, clipped, make_rays("incoherent", scene, 23, 19, None, {}),
+            make_rays("shadow", scene, 21, 17, None, {"light_size": light, "samples": 1})]
+    try:
+        for rays in sets:
+            monkeypatch.setenv("LSBENCH_PACKET", "1")
+            single = backends.trace(built, rays)
+            monkeypatch.setenv("LSBENCH_PACKET", str(width))
+            packed = backends.trace(built, rays)
+            assert (single.packet, packed.packet) == (1, width)
+            assert np.array_equal(single.prim_ids >= 0, packed.prim_ids >= 0), rays.name
+            if rays.query == "closest":
+                same = single.prim_ids == packed.prim_ids
+                assert np.array_equal(single.distances[same], packed.distances[same]), rays.name
+                assert same.mean() > 0.99, rays.name
+                np.testing.assert_allclose(packed.distances, single.distances, rtol=1e-6, err_msg=rays.name)
+            ref_p, ref_t = embree_closest(scene, rays)
+            _, cl = judge_hits(scene, rays, packed.prim_ids, packed.distances, ref_p, ref_t)
+            assert cl.unexplained == 0, (rays.name, cl)
+        work = backends.trace(built, primary, work=True).work  # counted: each lane its packet's work
+        assert work.shape == (primary.count, 4) and np.all(work[:, 0] >= 1) and np.all(work[:, 0] <= built.stats["nodes"])
+    finally:
+        built.release()
+
+
+def test_packets_only_for_coherent_rays_on_cpu_devices(device, monkeypatch):
+    """backends.packet_width: primary rays go in packets on PoCL (a CPU device, Device.packet_width
+    8); incoherent and ambient-occlusion rays, GLSL (no packet kernel),
+    a sliced trace and structures without a packet traversal take one ray per work item. A bad
+    LSBENCH_PACKET is one line naming it."""
+    monkeypatch.delenv("LSBENCH_PACKET", raising=False)
+    scene = load_scene("spheres")
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    grid_built = backends.build(device, "grid", scene, BuildParams(resolution=(8, 8, 8)))
+    try:
+        primary = primary_rays(scene, 32, 32)
+        incoherent = make_rays("incoherent", scene, 32, 32, None, {})
+        ao = make_rays("ao", scene, 32, 32, None, {"samples": 4})
+        assert backends.ray_coherence(primary, 8) > backends.PACKET_MIN_COHERENCE > backends.ray_coherence(ao, 8)
+        cpu = device.backend == "opencl" and device.packet_width == 8
+        expect = 8 if cpu else 1
+        assert backends.packet_width(built, primary, None) == expect
+        assert backends.packet_width(built, incoherent, None) == 1
+        assert backends.packet_width(built, ao, None) == 1
+        assert backends.packet_width(built, primary, 1000) == 1  # bounded slices: one ray per item
+        assert backends.packet_width(grid_built, primary, None) == 1
+        assert backends.trace(built, primary).packet == expect
+        monkeypatch.setenv("LSBENCH_PACKET", "4")
+        with pytest.raises(ValueError, match="LSBENCH_PACKET must be one of auto, 1, 8, 16, got '4'"):
+            backends.trace(built, primary)
+    finally:
+        built.release()
+        grid_built.release()
 
 
 def test_work_counters_count_node_visits_and_tests(device):

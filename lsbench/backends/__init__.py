@@ -10,6 +10,11 @@ Where the device bounds a launch's loops (Device.loop_budget: llvmpipe), a trace
 slices: each launch runs at most that many loop iterations per ray and the unfinished rays are
 launched again (shaders/common/trace.h). budget= (or env LSBENCH_SLICE_BUDGET, "none" = unbounded)
 forces a budget on any device, e.g. to test the slices on OpenCL.
+
+Where the device runs work items one at a time on a CPU (Device.packet_width: PoCL) and the rays
+are coherent (packet_width below: primary rays, shadow rays to a light), a structure with a packet
+traversal (bvh) traces a packet of rays per work item in the vector lanes (shaders/common/bvh.h);
+env LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) decides it by hand.
 """
 from __future__ import annotations
 
@@ -21,7 +26,7 @@ import numpy as np
 from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
 from .kernels import SLICE_WORDS
-from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, sliced,
+from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, packeted, sliced,
                               with_work_counters)
 
 BACKENDS = ("glsl", "opencl")
@@ -157,6 +162,61 @@ def _ray_buffer(rays, order: np.ndarray | None) -> np.ndarray:
     return packed.ravel()
 
 
+# A packet of rays visits the union of the nodes its rays need, so it pays only where its rays take
+# about the same way. PoCL, Sponza from the interior camera (docs/profiles.md, section 8), device
+# time of the packet kernel over the single-ray one, with ray_coherence in brackets: primary rays
+# 512² 0.57 (0.9999), 64² 0.78 (0.998), 32² 0.90 (0.993); shadow rays to a point light 0.75 (0.9997;
+# BMW 0.67 at 0.998); the 512² primary rays each turned at random by up to 2 degrees 0.85 (0.9994),
+# by up to 10 degrees 1.13 (0.986); ambient occlusion 1.02 (0.31), diffuse 1.07 (0.22), incoherent
+# 1.54 (-0.61). Packets from this coherence up.
+PACKET_MIN_COHERENCE = 0.99
+
+
+def ray_coherence(rays, width: int) -> float:
+    """How parallel the rays of a packet are: over the groups of `width` consecutive rays in launch
+    order, the median of each group's smallest cosine between a ray's direction and the group's
+    mean direction (1: parallel rays; a group of opposite rays -1)."""
+    n = rays.count // width * width
+    if n == 0:
+        return -1.0
+    order = launch_order(rays)
+    d = np.asarray(rays.directions if order is None else np.asarray(rays.directions)[order], np.float64)[:n]
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    groups = d.reshape(-1, width, 3)
+    mean = groups.sum(axis=1)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-300)
+    return float(np.median(np.einsum("gwk,gk->gw", groups, mean).min(axis=1)))
+
+
+PACKET_CHOICES = ("auto", "1", "8", "16")
+
+
+def packet_width(built: Built, rays, budget: int | None) -> int:
+    """Rays per work item for this trace: the device's packet_width where the structure has a
+    packet traversal, one launch runs whole rays (no slices) and the rays are coherent
+    (ray_coherence >= PACKET_MIN_COHERENCE); else 1. Env LSBENCH_PACKET (PACKET_CHOICES) overrides
+    the choice on OpenCL devices (GLSL has no packet kernel)."""
+    forced = os.environ.get("LSBENCH_PACKET", "").strip().lower() or "auto"
+    if forced not in PACKET_CHOICES:
+        raise ValueError(f"LSBENCH_PACKET must be one of {', '.join(PACKET_CHOICES)}, got {forced!r}")
+    device = built.device
+    if budget is not None or not structure_info(built.structure).packets or device.backend != "opencl":
+        return 1
+    if forced != "auto":
+        return int(forced)
+    width = device.packet_width
+    if width <= 1 or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
+        return 1
+    return width
+
+
+def _launch_spec(spec, n: int, uniforms: dict, width: int):
+    """(kernel, work items, uniforms) of a launch over n rays at `width` rays per work item."""
+    if width <= 1:
+        return spec, n, uniforms
+    return packeted(spec, width), -(-n // width), dict(uniforms, packet_rays=n)
+
+
 def _trace_buffers(built: Built, rays, work: bool):
     d = built.device
     bufs = dict(built.scene_buffers)
@@ -232,9 +292,11 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     spec = with_work_counters(spec, d) if work else spec
     bufs = _trace_buffers(built, rays, work)
     budget = slice_budget(d, budget)
+    width = packet_width(built, rays, budget)
     try:
         if budget is None:
-            d.dispatch(spec, rays.count, bufs, built.uniforms)
+            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width)
+            d.dispatch(kernel, items, bufs, uniforms)
             slices = 1
         else:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
@@ -243,7 +305,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
         order = launch_order(rays)
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
                     _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices,
-                    slice_budget=budget)
+                    slice_budget=budget, packet=width)
         if work:
             hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
     finally:
@@ -267,7 +329,8 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     budget = slice_budget(d, budget)
     try:
         if budget is None:
-            return d.time_dispatch(spec, rays.count, bufs, built.uniforms, warmup, repeats, between)
+            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, packet_width(built, rays, budget))
+            return d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
         bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
         spec = sliced(spec)
         for _ in range(max(warmup, 1)):

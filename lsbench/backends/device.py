@@ -110,6 +110,12 @@ class Device(abc.ABC):
     # None: unbounded, one launch runs whole rays. llvmpipe sets one (glsl.py); PoCL and NVIDIA none.
     loop_budget: int | None = None
 
+    # Rays per work item of the packet traversals (shaders/common/bvh.h: BVH_PACKET), for coherent ray
+    # sets (backends.packet_width): 8 on a CPU device whose work items run one at a time, so that the
+    # kernel's vector types are its only SIMD (PoCL); 1 (a ray per work item) where the driver runs
+    # work items in SIMD lanes itself (llvmpipe, GPUs).
+    packet_width: int = 1
+
     @abc.abstractmethod
     def release(self, buf: DeviceBuffer) -> None:
         """Free buf's device memory now (the driver's handle is unusable afterwards)."""

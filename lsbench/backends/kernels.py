@@ -107,6 +107,9 @@ WORK_BUFFER = Buf("work", "uint4", "w")
 SLICE_WORDS = 16  # must match shaders/common/trace.h
 SLICE_BUFFER = Buf("slice_state", "uint", "rw")
 SLICE_UNIFORMS = (Uniform("slice_budget", "uint"), Uniform("slice_list_base", "uint"))
+# The ray count of a packet traversal (BVH_PACKET rays per work item; shaders/common/bvh.h): the last
+# packet's lanes past it trace nothing.
+PACKET_UNIFORM = Uniform("packet_rays", "uint")
 
 
 def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers: tuple[Buf, ...],

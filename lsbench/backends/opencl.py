@@ -10,6 +10,12 @@ from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing
                      start_failure_hint)
 from .kernels import SHADER_ROOT, KernelSpec, kernel_defines, numbered, read_common
 
+# Rays per work item of the packet traversals on a CPU device (bvh.h: BVH_PACKET, 8 or 16). PoCL,
+# Sponza 512² primary rays: 8 and 16 both took 0.57-0.62 of the single-ray kernel's device time;
+# on incoherent rays 8 lost less (1.54x against 1.84x), and coherence (backends.packet_width)
+# keeps such sets on single rays anyway (docs/profiles.md, section 8).
+CPU_PACKET_WIDTH = 8
+
 CL_TYPES = {"float": "float", "uint": "uint", "int": "int", "float4": "float4", "uint4": "uint4",
             "int4": "int4", "uint2": "uint2"}
 
@@ -66,6 +72,9 @@ class OpenCLDevice(Device):
         self.device = self._pick_device()
         self.ctx = cl.Context([self.device])
         self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        # PoCL runs a CPU device's work items one after the other (docs/profiles.md, section 1): a
+        # packet of rays per work item puts them in the vector lanes (Device.packet_width).
+        self.packet_width = CPU_PACKET_WIDTH if self.device.type & cl.device_type.CPU else 1
         self._programs: dict = {}
         self._kernel_log: list | None = None  # (kernel name, event) while start_kernel_log is on
         self._scan = None

@@ -79,6 +79,7 @@ class Record:
     clock: str | None = None
     trace_slices: int | None = None
     slice_budget: int | None = None
+    trace_packet: int | None = None
     rays_per_second: float | None = None
     fps: float | None = None
     embree_trace_seconds: float | None = None

@@ -22,6 +22,7 @@ class StructureInfo:
     line_space: bool  # takes ls_n / ls_min_candidates
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
     leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none
+    packets: bool = False  # its trace kernel has a packet traversal (Device.packet_width; bvh.h BVH_PACKET)
 
 
 CATALOGUE: tuple[StructureInfo, ...] = (
@@ -32,7 +33,7 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
     StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, treelet restructuring (Fig. 4c baseline)",
-                  bvh.DEFAULT_LEAF_SIZE),
+                  bvh.DEFAULT_LEAF_SIZE, packets=True),
     StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
                   bvh_ls_module.DEFAULT_LEAF_SIZE),
 )

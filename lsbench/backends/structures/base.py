@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..device import Device, DeviceBuffer, as_float4, as_int4
-from ..kernels import SLICE_BUFFER, SLICE_UNIFORMS, WORK_BUFFER, KernelSpec
+from ..kernels import PACKET_UNIFORM, SLICE_BUFFER, SLICE_UNIFORMS, WORK_BUFFER, KernelSpec
 
 # Overlap epsilon of the conservative voxelization, in voxel units: a triangle within this
 # distance of a voxel counts as overlapping it, so float32 rounding never drops a pair.
@@ -140,6 +140,7 @@ class Hits:
     work: np.ndarray | None = None  # (N, 4) uint32 counters of a profiling trace, WORK_CHANNELS
     slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
     slice_budget: int | None = None  # loop iterations per ray and launch it started with (None: unbounded)
+    packet: int = 1  # rays per work item (backends.packet_width: more than 1, the packet traversal)
 
 
 QUERIES = ("closest", "any")
@@ -165,6 +166,14 @@ def with_work_counters(spec: KernelSpec, device: Device | None = None) -> Kernel
     clock = device.clock_defines() if device is not None else ()
     return dataclasses.replace(spec, buffers=spec.buffers + (WORK_BUFFER,),
                                defines=spec.defines + (("COUNT_WORK", "1"),) + clock)
+
+
+def packeted(spec: KernelSpec, width: int) -> KernelSpec:
+    """The packet variant of a traversal kernel (the same KERNEL_<name>, the same tests per ray):
+    BVH_PACKET = width rays per work item, packet_rays the ray count (work item g traces rays
+    g * width .. g * width + width - 1; shaders/common/bvh.h)."""
+    return dataclasses.replace(spec, uniforms=spec.uniforms + (PACKET_UNIFORM,),
+                               defines=spec.defines + (("BVH_PACKET", str(int(width))),))
 
 
 def sliced(spec: KernelSpec) -> KernelSpec:

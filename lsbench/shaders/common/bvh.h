@@ -615,12 +615,72 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     if ((ref_) != BVH_NONE && (tn_) <= (tf_))                                \
         BVH_PUSH((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_), tn_)
 
-// Stack-based walk, nearest first. A node visit (one `iterations` step) tests its 4 slots' boxes
-// against [tmin, the closest hit so far] and pushes the hit ones, nodes and leaves alike, in
-// order of entry distance; then entries are popped, nearest first: one whose entry lies past
-// the closest hit by then is dropped, a leaf is tested (trace.h's candidate loop), a node is
-// visited. QUERY_ANY: the first hit ends the walk. Stack: at most 3 entries per level of the path
-// plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
+// Stack-based walk, nearest first, written once for the single-ray and the packet traversal, the
+// work injected (as madmann91/bvh's traverse_top_down takes its leaf and node callbacks):
+//   VISIT  a node visit (one `iterations` step): tests the 4 slots' boxes of `node` against
+//          [tmin, the closest hit so far] and pushes the hit ones, nodes and leaves alike, with
+//          BVH_PUSH in order of entry distance;
+//   BOUND  the entry distance past which a popped entry is dropped (the closest hit by then);
+//   LEAF   tests the leaf of stack entry `e` (trace.h's candidate loop);
+//   DONE   after a leaf: whether the walk ends (QUERY_ANY: a hit).
+// Then entries are popped, nearest first; the nearest hit slot, when a node, is visited next
+// without the pop loop's checks (its entry lies before the closest hit: tn <= tf <= best; PoCL,
+// Sponza 512² primary: 0.949 and 0.977 of the device time, medians of 20 alternated pairs of
+// lsbench.profile.ab; incoherent rays and llvmpipe unchanged, 1.005 and 1.002). Stack: at most 3
+// entries per level of the path plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
+#define BVH_WALK(VISIT, BOUND, LEAF, DONE)                                             \
+    uint stack[BVH_STACK];                                                             \
+    float stack_t[BVH_STACK];                                                          \
+    int sp = 0;                                                                        \
+    uint node = 0u;                                                                    \
+    int done = 0;                                                                      \
+    while (done == 0) {                                                                \
+        int base = sp;                                                                 \
+        VISIT                                                                          \
+        node = BVH_NONE;                                                               \
+        if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {                           \
+            sp -= 1;                                                                   \
+            node = stack[sp];                                                          \
+            continue;                                                                  \
+        }                                                                              \
+        while (sp > 0) {                                                               \
+            sp -= 1;                                                                   \
+            uint e = stack[sp];                                                        \
+            if (stack_t[sp] > (BOUND)) continue;                                       \
+            if ((e & BVH_LEAF) == 0u) { node = e; break; }                             \
+            LEAF                                                                       \
+            if (DONE) break;                                                           \
+        }                                                                              \
+        if (node == BVH_NONE) done = 1;                                                \
+    }
+
+// The single ray's node visit: the slab test of a node's 4 slots at once in float4 lanes.
+#define BVH_VISIT_RAY {                                                                 \
+        tr = trace_tick(tr);                                                           \
+        float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;                            \
+        float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;                       \
+        float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;                       \
+        float4 by = (V(bvh_nodes)[6u * node + 3u] - oy) * inv.y;                       \
+        float4 az = (V(bvh_nodes)[6u * node + 4u] - oz) * inv.z;                       \
+        float4 bz = (V(bvh_nodes)[6u * node + 5u] - oz) * inv.z;                       \
+        float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));          \
+        float best = tr.best.t;                                                        \
+        float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,   \
+                        make_float4(best, best, best, best));                          \
+        uint4 refs = V(bvh_links)[2u * node];                                          \
+        uint4 counts = V(bvh_links)[2u * node + 1u];                                   \
+        BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)                                     \
+        BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)                                     \
+        BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)                                     \
+        BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)                                     \
+    }
+
+#ifdef QUERY_ANY
+#define BVH_RAY_DONE (tr.best.prim >= 0)
+#else
+#define BVH_RAY_DONE (0 != 0)
+#endif
+
 INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
 #ifdef SLICED
@@ -635,57 +695,191 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
     float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
     float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
-    uint stack[BVH_STACK];
-    float stack_t[BVH_STACK];
-    int sp = 0;
-    uint node = 0u;
-    int done = 0;
-    while (done == 0) {
-        tr = trace_tick(tr);
-        float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;
-        float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;
-        float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;
-        float4 by = (V(bvh_nodes)[6u * node + 3u] - oy) * inv.y;
-        float4 az = (V(bvh_nodes)[6u * node + 4u] - oz) * inv.z;
-        float4 bz = (V(bvh_nodes)[6u * node + 5u] - oz) * inv.z;
-        float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));
-        float best = tr.best.t;
-        float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,
-                        make_float4(best, best, best, best));
-        uint4 refs = V(bvh_links)[2u * node];
-        uint4 counts = V(bvh_links)[2u * node + 1u];
-        int base = sp;
-        BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)
-        BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)
-        BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)
-        BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
-        node = BVH_NONE;
-        // The nearest hit slot is on top; a node there is visited next without the pop loop's
-        // checks (its entry lies before the closest hit: tn <= tf <= best). PoCL, Sponza 512²
-        // primary: 0.949 and 0.977 of the device time (medians of 20 alternated pairs,
-        // lsbench.profile.ab); incoherent rays and llvmpipe unchanged (1.005, 1.002).
-        if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {
-            sp -= 1;
-            node = stack[sp];
-            continue;
-        }
-        while (sp > 0) {
-            sp -= 1;
-            uint e = stack[sp];
-            if (stack_t[sp] > tr.best.t) continue;
-            if ((e & BVH_LEAF) == 0u) { node = e; break; }
-            tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);
-#ifdef QUERY_ANY
-            if (tr.best.prim >= 0) break;
-#endif
-        }
-        if (node == BVH_NONE) done = 1;
-    }
+    BVH_WALK(BVH_VISIT_RAY, tr.best.t, tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);, BVH_RAY_DONE)
     return trace_finish(CTX_ARG tr, id);
 }
 
+#ifdef BVH_PACKET
+// ---- Packet traversal (BVH_PACKET rays per work item; OpenCL only) ---------------------------
+// A CPU OpenCL device (PoCL) runs one work item after the other: a divergent single-ray walk gets
+// no SIMD but the float4 of one node's slots (docs/profiles.md, section 1). Coherent rays (primary,
+// shadow rays to a light) are traced here as packets (Wald, Slusallek, Benthin & Wagner 2001,
+// "Interactive rendering with coherent ray tracing"): the work item carries BVH_PACKET rays in the
+// lanes of float8 / float16, tests each slot's box against all of them at once, enters a slot
+// that any lane's ray hits (nearest first by the smallest lane entry), and tests a leaf's
+// triangles against all lanes, the watertight test's edge functions in the lanes and, for the
+// lanes that may hit, the scalar ray_triangle_wt for the distance. The host picks packets by the
+// rays' coherence (backends.packet_width); a language without vector types of 8 (GLSL) has none.
+#ifndef LANG_OPENCL
+#error "BVH_PACKET: the packet traversal is OpenCL C (vector types of 8 or 16 lanes)"
+#endif
+#if BVH_PACKET == 8
+typedef float8 floatP;
+typedef int8 intP;
+#define VLOADP vload8
+#define VSTOREP vstore8
+#define HREDUCE(op, v) op(op(op((v).lo.lo, (v).lo.hi), op((v).hi.lo, (v).hi.hi)).x, \
+                          op(op((v).lo.lo, (v).lo.hi), op((v).hi.lo, (v).hi.hi)).y)
+#elif BVH_PACKET == 16
+typedef float16 floatP;
+typedef int16 intP;
+#define VLOADP vload16
+#define VSTOREP vstore16
+#define HREDUCE4(op, v) op(op((v).lo.lo, (v).lo.hi), op((v).hi.lo, (v).hi.hi))
+#define HREDUCE(op, v) op(op(HREDUCE4(op, (v).lo), HREDUCE4(op, (v).hi)).x, \
+                          op(HREDUCE4(op, (v).lo), HREDUCE4(op, (v).hi)).y)
+#else
+#error "BVH_PACKET must be 8 or 16"
+#endif
+
+// The packet's rays: lane l is ray gid * BVH_PACKET + l (launch order: rows of the 8 x 8 tiles).
+// Each lane runs the single-ray walk's operations (the same slab test per box against its own
+// closest hit, the watertight test with its own ray's axes), and a box is entered when any lane's
+// ray hits it, so a lane tests the triangles its own walk would and maybe more: the same closest
+// distance as trace_bvh. The triangle can differ at a tie only: where the single walk dropped a
+// box whose entry, rounded, lay past an equally near hit (the box of a coplanar twin), a packet may
+// still enter it for another lane and find the twin (closer(): the smaller id at equal t). PoCL,
+// Sponza 512²: all 262,144 primary rays the same; 21 of 262,144 incoherent rays a twin at the same
+// t (or one float step nearer), every one a tie for Embree's check (tests/test_bvh.py).
+// The packet's rays in lanes: origin, 1 / direction (bvh_rcp) and tmin for the slab tests; the
+// watertight test's per-ray shear (make_wray) with its axes as lane masks (k?0: the axis is x,
+// k?1: y); `lanes` rays are real, the others (past the ray count) meet nothing.
+STRUCT(Packet) {
+    floatP ox; floatP oy; floatP oz; floatP ix; floatP iy; floatP iz; floatP t0; floatP sx; floatP sy; floatP sz;
+    intP kx0; intP kx1; intP ky0; intP ky1; intP kz0; intP kz1; int lanes;
+};
+
+// Component k (0 x, 1 y, 2 z) of each lane, picked by the lane masks of k.
+#define BVH_PICK(x_, y_, z_, k0_, k1_) select(select(z_, y_, k1_), x_, k0_)
+
+// A leaf (stack entry e) against every lane: the sheared vertices (wray_vertex) and the edge
+// functions of ray_triangle_wt in the lanes; a lane that the edge values and det do not rule out
+// runs ray_triangle_wt itself for its distance, so a lane hits exactly what its own test hits.
+// prune[l]: lane l's bound of the walk (its closest hit; QUERY_ANY: -inf once it has a hit).
+INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, uint e) {
+    uint node = (e & ~BVH_LEAF) >> 2;
+    uint slot = e & 3u;
+    uint first = comp4u(V(bvh_links)[2u * node], slot);
+    uint end = first + comp4u(V(bvh_links)[2u * node + 1u], slot);
+    for (uint i = first; i < end; ++i) {
+        uint tri = V(voxel_tris)[i];
+        Triangle T = load_candidate(CTX_ARG tri);
+        floatP pxa = T.a.x - p->ox, pya = T.a.y - p->oy, pza = T.a.z - p->oz;
+        floatP pxb = T.b.x - p->ox, pyb = T.b.y - p->oy, pzb = T.b.z - p->oz;
+        floatP pxc = T.c.x - p->ox, pyc = T.c.y - p->oy, pzc = T.c.z - p->oz;
+        floatP za = BVH_PICK(pxa, pya, pza, p->kz0, p->kz1);
+        floatP zb = BVH_PICK(pxb, pyb, pzb, p->kz0, p->kz1);
+        floatP zc = BVH_PICK(pxc, pyc, pzc, p->kz0, p->kz1);
+        floatP ax = BVH_PICK(pxa, pya, pza, p->kx0, p->kx1) - p->sx * za;
+        floatP ay = BVH_PICK(pxa, pya, pza, p->ky0, p->ky1) - p->sy * za;
+        floatP bx = BVH_PICK(pxb, pyb, pzb, p->kx0, p->kx1) - p->sx * zb;
+        floatP by = BVH_PICK(pxb, pyb, pzb, p->ky0, p->ky1) - p->sy * zb;
+        floatP cx = BVH_PICK(pxc, pyc, pzc, p->kx0, p->kx1) - p->sx * zc;
+        floatP cy = BVH_PICK(pxc, pyc, pzc, p->ky0, p->ky1) - p->sy * zc;
+        floatP u = cx * by - cy * bx;
+        floatP v = ax * cy - ay * cx;
+        floatP w = bx * ay - by * ax;
+        // ray_triangle_wt's misses, lane by lane: edge values of both signs, or det = u + v + w zero
+        intP mixed = ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
+        intP maybe = ~mixed & ~(u + v + w == 0.0f);
+#ifdef COUNT_WORK
+        for (int l = 0; l < BVH_PACKET; ++l) tr[l].tests += 1u;
+#endif
+        if (!any(maybe)) continue;
+        int m_[BVH_PACKET];
+        VSTOREP(maybe, 0, m_);
+        for (int l = 0; l < p->lanes; ++l) {
+            if (m_[l] == 0) continue;
+            tr[l].best = closer(tr[l].best, ray_triangle_wt(tr[l].wr, T.a, T.b, T.c), I32(tri), tr[l].tmin);
+#ifdef QUERY_ANY
+            prune[l] = tr[l].best.prim >= 0 ? -INF_F : tr[l].best.t;
+#else
+            prune[l] = tr[l].best.t;
+#endif
+        }
+    }
+}
+
+// The packet's node visit: each slot's box against every lane (the single ray's slab test, lane
+// by lane); a slot is pushed when some lane's ray hits it, at the smallest entry of those lanes.
+#define BVH_PACKET_SLOT(k_, c_)                                                                 \
+    if (refs.c_ != BVH_NONE) {                                                                  \
+        floatP ax = (lx.c_ - pk.ox) * pk.ix, bx = (hx.c_ - pk.ox) * pk.ix;                      \
+        floatP ay = (ly.c_ - pk.oy) * pk.iy, by = (hy.c_ - pk.oy) * pk.iy;                      \
+        floatP az = (lz.c_ - pk.oz) * pk.iz, bz = (hz.c_ - pk.oz) * pk.iz;                      \
+        floatP tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), pk.t0));                \
+        floatP tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN, best);     \
+        intP hit = tn <= tf;                                                                    \
+        if (any(hit)) {                                                                         \
+            float entry = HREDUCE(min, select((floatP)(INF_F), tn, hit));                       \
+            BVH_PUSH(counts.c_ > 0u ? (BVH_LEAF | (4u * node + (k_))) : refs.c_, entry)         \
+        }                                                                                       \
+    }
+#ifdef COUNT_WORK
+#define BVH_PACKET_TICK for (int l = 0; l < BVH_PACKET; ++l) tr[l].iterations += 1u;
+#else
+#define BVH_PACKET_TICK
+#endif
+#define BVH_VISIT_PACKET {                                                                      \
+        BVH_PACKET_TICK                                                                         \
+        floatP best = VLOADP(0, prune);                                                         \
+        float4 lx = V(bvh_nodes)[6u * node], hx = V(bvh_nodes)[6u * node + 1u];                 \
+        float4 ly = V(bvh_nodes)[6u * node + 2u], hy = V(bvh_nodes)[6u * node + 3u];            \
+        float4 lz = V(bvh_nodes)[6u * node + 4u], hz = V(bvh_nodes)[6u * node + 5u];            \
+        uint4 refs = V(bvh_links)[2u * node];                                                   \
+        uint4 counts = V(bvh_links)[2u * node + 1u];                                            \
+        BVH_PACKET_SLOT(0u, x)                                                                  \
+        BVH_PACKET_SLOT(1u, y)                                                                  \
+        BVH_PACKET_SLOT(2u, z)                                                                  \
+        BVH_PACKET_SLOT(3u, w)                                                                  \
+    }
+#ifdef QUERY_ANY
+#define BVH_PACKET_DONE (HREDUCE(max, VLOADP(0, prune)) == -INF_F)
+#else
+#define BVH_PACKET_DONE (0 != 0)
+#endif
+
+INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
+    uint first = gid * U32(BVH_PACKET);
+    float ox_[BVH_PACKET], oy_[BVH_PACKET], oz_[BVH_PACKET], ix_[BVH_PACKET], iy_[BVH_PACKET], iz_[BVH_PACKET];
+    float t0_[BVH_PACKET], sx_[BVH_PACKET], sy_[BVH_PACKET], sz_[BVH_PACKET], prune[BVH_PACKET];
+    int kx_[BVH_PACKET], ky_[BVH_PACKET], kz_[BVH_PACKET];
+    Trace tr[BVH_PACKET];
+    Packet pk;
+    pk.lanes = 0;
+    for (int l = 0; l < BVH_PACKET; ++l) {
+        uint ray = first + U32(l);
+        Ray r;
+        if (ray < V(packet_rays)) {
+            r = load_ray(CTX_ARG ray);
+            pk.lanes = l + 1;
+        } else {  // past the last ray: a ray that meets nothing (tmin = inf)
+            r.o = make_float3(0.0f, 0.0f, 0.0f);
+            r.d = make_float3(1.0f, 0.0f, 0.0f);
+            r.tmin = INF_F;
+            r.tmax = INF_F;
+        }
+        tr[l] = trace_start(CTX_ARG r, ray);
+        ox_[l] = r.o.x; oy_[l] = r.o.y; oz_[l] = r.o.z;
+        ix_[l] = bvh_rcp(r.d.x); iy_[l] = bvh_rcp(r.d.y); iz_[l] = bvh_rcp(r.d.z);
+        t0_[l] = r.tmin;
+        prune[l] = tr[l].best.t;
+        kx_[l] = tr[l].wr.kx; ky_[l] = tr[l].wr.ky; kz_[l] = tr[l].wr.kz;
+        sx_[l] = tr[l].wr.sx; sy_[l] = tr[l].wr.sy; sz_[l] = tr[l].wr.sz;
+    }
+    pk.ox = VLOADP(0, ox_); pk.oy = VLOADP(0, oy_); pk.oz = VLOADP(0, oz_);
+    pk.ix = VLOADP(0, ix_); pk.iy = VLOADP(0, iy_); pk.iz = VLOADP(0, iz_);
+    pk.t0 = VLOADP(0, t0_); pk.sx = VLOADP(0, sx_); pk.sy = VLOADP(0, sy_); pk.sz = VLOADP(0, sz_);
+    intP kx = VLOADP(0, kx_), ky = VLOADP(0, ky_), kz = VLOADP(0, kz_);
+    pk.kx0 = kx == 0; pk.kx1 = kx == 1; pk.ky0 = ky == 0; pk.ky1 = ky == 1; pk.kz0 = kz == 0; pk.kz1 = kz == 1;
+    BVH_WALK(BVH_VISIT_PACKET, HREDUCE(max, VLOADP(0, prune)), bvh_packet_leaf(CTX_ARG &pk, tr, prune, e);,
+             BVH_PACKET_DONE)
+    for (int l = 0; l < pk.lanes; ++l) store_hit(CTX_ARG first + U32(l), trace_finish(CTX_ARG tr[l], first + U32(l)));
+}
+#else
 INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     uint ray = trace_ray(CTX_ARG gid);
     store_hit(CTX_ARG ray, trace_bvh(CTX_ARG load_ray(CTX_ARG ray), ray));
 }
+#endif
 #endif  // traversal
