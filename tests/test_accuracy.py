@@ -155,6 +155,29 @@ def test_zero_area_triangles_are_hit_at_their_distance_or_not_at_all(device, str
     np.testing.assert_allclose(hits.distances[on_degenerate], 3.0, atol=1e-5)
 
 
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_a_ray_grazing_a_face_through_its_vertex_is_hit_on_the_triangle(device, structure):
+    """A ray 1.8e-4 rad off the plane of a tall face of the Cornell box's box, passing within
+    rounding of its top vertex (an adversarial ray, found by the BVH's packets): the edge test
+    says inside (at the vertex, depth 0.911), the plane crossing lies 0.16 before it, off the
+    triangle. A hit must be reported where the ray meets the triangle (geometry.h:
+    triangle_plane_t takes the edge test's depth for rays that close to the plane)."""
+    face = np.array([[-0.523986, 0.0, 0.0906493], [0.0495656, 0.0, -0.108948], [0.0495656, 1.2, -0.108948]],
+                    np.float32)
+    far = np.array([[3.0, -1.0, -1.0], [3.0, -1.0, 1.0], [3.0, -0.5, 0.0]], np.float32)  # sets the bounds
+    scene = Scene("grazing-face", np.concatenate([face, far]), np.arange(6, dtype=np.uint32).reshape(2, 3),
+                  "test:grazing")
+    o = np.array([[-0.81076175, 1.2000000476837158, 0.19044781]], np.float32)
+    d = np.array([[0.9444452, 0.0, -0.32866898]], np.float32)
+    rays = RaySet("grazing", o, d)
+    params = structure_params(structure)
+    out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
+    assert out["unexplained"] == [], explain(out)
+    hits = out["hits"]
+    if hits.prim_ids[0] == 0:  # at the vertex it grazes, not at the plane crossing
+        np.testing.assert_allclose(hits.distances[0], 0.9109341, rtol=1e-5)
+
+
 @pytest.mark.parametrize("offset", [1e6, 1e7])
 @pytest.mark.parametrize("structure", STRUCTURES)
 def test_far_offset_scene(device, structure, offset):

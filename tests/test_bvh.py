@@ -18,6 +18,7 @@ from lsbench.oracle.classifier import judge_hits
 from lsbench.oracle.embree import embree_closest
 
 from conftest import scene_path
+from helpers import check_structure, explain
 
 SPONZA_CAMERA = Camera(eye=(1100, 180, -40), target=(-900, 420, 40), up=(0, 1, 0), fov_deg=65)
 
@@ -244,6 +245,18 @@ def test_packets_find_the_single_ray_hits(monkeypatch, width):
         assert work.shape == (primary.count, 4) and np.all(work[:, 0] >= 1) and np.all(work[:, 0] <= built.stats["nodes"])
     finally:
         built.release()
+
+
+@pytest.mark.parametrize("scene_name", ["cornell", "spheres"])
+def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name):
+    """Adversarial rays (along edges and faces, through vertices, grazing) forced into packets: a
+    lane may now test triangles its own walk's boxes ruled out (a box face the ray lies in), and
+    every answer must still be one Embree's check explains (the grazing-vertex distance of
+    geometry.h's triangle_plane_t came from here)."""
+    monkeypatch.setenv("LSBENCH_PACKET", "8")
+    scene = load_scene(scene_name)
+    out = check_structure(backends.get_device("opencl"), "bvh", scene, (1, 1, 1))
+    assert out["hits"].packet == 8 and out["unexplained"] == [], explain(out)
 
 
 def test_packets_only_for_coherent_rays_on_cpu_devices(device, monkeypatch):

@@ -85,7 +85,14 @@ INLINE float3 wray_vertex(WRay r, float3 v) {
 // moves the hit by ~2^-24 of the edge (issue 13 item 3: collinear triangles were hit up to 2.5e-3
 // off). A zero normal (a zero-area triangle has no surface) or a ray in the plane to float
 // precision is a miss; t stays inside the vertices' depth range [zlo, zhi] along the ray.
-INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo, float zhi) {
+// A ray within about 0.06 degrees of the plane (|cos| < 1e-3) crosses it where rounding of the
+// crossing is large and may lie far from where the edge test found the ray on the triangle: an
+// adversarial Cornell box ray along a box face, within 1e-8 of one vertex (the edge test's "inside",
+// at depth 0.911), crossed the face's plane 0.16 before it, off the triangle, and that was the
+// distance reported (the BVH's packets found it: docs/profiles.md, section 8). There the edge
+// test's own point is reported: t_edge, the depth Woop et al. interpolate from the sheared
+// vertices (on the triangle, to rounding).
+INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo, float zhi, float t_edge) {
     float3 e0 = v1 - v0, e1 = v2 - v1, e2 = v0 - v2;
     float l0 = dot(e0, e0), l1 = dot(e1, e1), l2 = dot(e2, e2);
     float3 lng = l0 >= l1 && l0 >= l2 ? e0 : (l1 >= l2 ? e1 : e2);
@@ -95,7 +102,9 @@ INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo
     float den = dot(n, r.d);
     // in the plane to float precision (|cos| <= 2^-23; also n = 0): the edge test's "inside" is
     // rounding, and no distance along the ray is meaningful
-    if (fabs(den) <= 1.1920929e-7f * sqrt(dot(n, n))) return INF_F;
+    float len = sqrt(dot(n, n));
+    if (fabs(den) <= 1.1920929e-7f * len) return INF_F;
+    if (fabs(den) < 1e-3f * len) return clamp(t_edge, zlo, zhi);  // grazing the plane: the edge test's point
     float3 p = l0 >= l1 && l0 >= l2 ? v0 : (l1 >= l2 ? v1 : v2);  // on the longest edge
     return clamp(dot(n, p - r.o) / den, zlo, zhi);
 }
@@ -112,7 +121,8 @@ INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
     if ((u < 0.0f || v < 0.0f || w < 0.0f) && (u > 0.0f || v > 0.0f || w > 0.0f)) return INF_F;
     float det = u + v + w;
     if (det == 0.0f) return INF_F;  // ray in the triangle's plane, or a degenerate triangle
-    return triangle_plane_t(r, v0, v1, v2, min(a.z, min(b.z, c.z)), max(a.z, max(b.z, c.z)));
+    float t_edge = (u * a.z + v * b.z + w * c.z) / det;  // Woop's depth: the edge test's point
+    return triangle_plane_t(r, v0, v1, v2, min(a.z, min(b.z, c.z)), max(a.z, max(b.z, c.z)), t_edge);
 }
 
 // --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------
