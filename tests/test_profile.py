@@ -293,10 +293,12 @@ def test_hotloop_cpu_seconds():
     assert out["mrays_per_cpu_second"] == pytest.approx(256 / out["cpu_seconds"] / 1e6)
 
 
-@pytest.mark.parametrize("variant", [["--leaf-size", "8", "--leaf-size-b", "2"], ["--defines", "UNUSED_DEFINE=3"]])
+@pytest.mark.parametrize("variant", [["--leaf-size", "8", "--leaf-size-b", "2"], ["--defines", "UNUSED_DEFINE=3"],
+                                     ["--packet-b", "8"]])
 def test_ab_alternates_two_variants_in_one_process(variant):
-    """lsbench.profile.ab (docs/profiles.md, section 7): both variants traced, the same hits (a
-    BVH's leaf size and an unused define change no closest hit), one line with the ratio."""
+    """lsbench.profile.ab (docs/profiles.md, sections 7 and 8): both variants traced, the same hits
+    (a BVH's leaf size, an unused define and packets of primary rays change no closest hit), one
+    line with the ratio."""
     res = subprocess.run([sys.executable, "-m", "lsbench.profile.ab", "cornell", "bvh", "opencl", "1",
                           "--size", "16x16", "--pairs", "3", *variant], cwd=REPO, capture_output=True, text=True,
                          timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))

@@ -385,7 +385,7 @@ def write_heatmaps(built, rays, out_dir, case_key: str, clock_runs: int = CLOCK_
         "clock": clock, "counters": stats,
         "counters_hit_rays": {name: counter_stats(work[hit, i]) for i, name in enumerate(CHANNELS)},
         "normalization": norms, "not_drawn": skipped,
-        "simd": {**simd.simd_fields(work, order, info), "widths_drawn": widths},
+        "simd": {**simd.simd_fields(work, order, info, hits.packet), "widths_drawn": widths},
         "exr_channels": [*CHANNELS, *simd_images, "Y"], "exr_Y": Y_RULE, "files": dict(files),
     }
     path = out / f"{slug}_work.json"

@@ -109,12 +109,16 @@ def device_simd_width(info: dict) -> tuple[int | None, str]:
     return None, f"group width of {name or 'this device'} not known"
 
 
-def simd_fields(work: np.ndarray, order: np.ndarray | None, info: dict) -> dict:
+def simd_fields(work: np.ndarray, order: np.ndarray | None, info: dict, packet: int = 1) -> dict:
     """The record's SIMD efficiency fields (docs/record.md) from the per-ray counters `work`
-    (uint4 per ray in the ray set's order, base.WORK_CHANNELS), the launch order and Device.info()."""
+    (uint4 per ray in the ray set's order, base.WORK_CHANNELS), the launch order and Device.info();
+    packet > 1: the trace ran that many rays per work item in vector lanes (Hits.packet)."""
     from lsbench.backends.structures.base import WORK_CHANNELS
 
     width, source = device_simd_width(info)
+    if packet > 1:
+        width, source = packet, (f"packet traversal: {packet} rays per work item in vector lanes "
+                                 "(shaders/common/bvh.h), each lane counting its packet's work")
     out: dict = {"simd_width_device": width, "simd_width_source": source}
     for counter, short in COUNTERS.items():
         column = work[:, WORK_CHANNELS.index(counter)] if len(work) else np.zeros(0)

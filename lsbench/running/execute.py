@@ -179,8 +179,9 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
                      prim_ids=hits.prim_ids, distances=hits.distances,
                      embree_prim_ids=ref_prim, embree_distances=ref_t)
         try:  # the counter kernel binds one more buffer: a driver limit there leaves the case ok
-            work = backends.trace(built, rays, work=True).work
-            rec.update(**work_fields(work), **simd_fields(work, backends.launch_order(rays), info),
+            counted = backends.trace(built, rays, work=True)
+            work = counted.work
+            rec.update(**work_fields(work), **simd_fields(work, backends.launch_order(rays), info, counted.packet),
                        work_counters_error="")
         except (DeviceLimitError, DeviceError) as exc:
             rec.update(work_counters_error=f"{type(exc).__name__}: {exc}".splitlines()[0][:500])
