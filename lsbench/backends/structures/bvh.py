@@ -28,14 +28,16 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
 
 Speed (`lsbench speedtest --size 512x512`, the best setting of every structure in speedtest.toml,
-Sponza from its interior camera, Embree in the same worker on the 2-core machine at a load of 2-3):
-bvh on PoCL 0.56x Embree on primary rays (esvo 512³ 0.50x, grid-ls 64³ N=3 0.43x), on llvmpipe
-0.15x; BMW (its own camera) 1.20x and 0.31x. tinybvh's Aila-Laine kernel on PoCL reached 0.62x on
-the same Sponza rays. Where the time goes and what was tried (docs/profiles.md, section 7): ~31
-node visits of 4 box tests and ~6 triangle tests per primary ray in scalar work items (PoCL runs
-these divergent loops one work item at a time; the float4 slab test is its only SIMD), a
-data-dependent branch per hit slot, and the watertight triangle test; the tree is within 5 % of a
-full-sweep SAH tree's node visits on these rays.
+Sponza from its interior camera, Embree in the same worker on the 2-core machine): one ray per work
+item, bvh on PoCL read 0.55-0.58x Embree on primary rays (esvo 512³ 0.50x, grid-ls 64³ N=3 0.43x),
+on llvmpipe 0.15x; tinybvh's Aila-Laine kernel on PoCL reached 0.62x on the same Sponza rays. Where
+that time went and what was tried (docs/profiles.md, section 7): ~31 node visits of 4 box tests and
+~6 triangle tests per primary ray in scalar work items (PoCL runs these divergent loops one work
+item at a time; the float4 slab test is their only SIMD). So on such a device coherent rays go in
+packets of 8 per work item (bvh.h BVH_PACKET, backends.packet_width; docs/profiles.md, section 8):
+0.56 of the single-ray device time on Sponza 512² primary rays, 0.88-1.01x Embree in the speed
+test; incoherent rays stay single (packets were 1.5x slower there): 0.45x on Sponza, 0.69-0.94x on
+BMW.
 
 Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
 (32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
