@@ -196,6 +196,45 @@ def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_k
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     assert built.stats["ls_work_items"] == built.stats["shafts"]  # one chunk per cell here
     assert_reference_lists(device, scene, res, n, test_kind, built)
+    _, offs, _ = read_linespaces(built)  # the count of non-empty shafts (32 per atomic on the device)
+    assert built.stats["non_empty_shafts"] == np.count_nonzero(np.diff(offs)) > 32
+    built.release()
+
+
+def grazing_planes_scene(count=24, seed=5) -> Scene:
+    """Large triangles (edges far outside the 2 x 2 x 2 grid) in planes through points within
+    0.002 of the grid's corners, edges and faces, at random slants: their edges never meet a
+    shaft, so the exact test's second half decides, mostly where the plane only grazes the
+    shafts' hulls or the volumes pushed out by eps beyond them (linespace.h ls_volume_edge_meets)."""
+    rng = np.random.default_rng(seed)
+    tris = []
+    for _ in range(count):
+        point = rng.integers(0, 3, 3).astype(float) + rng.uniform(-0.002, 0.002, 3)
+        normal = rng.normal(size=3)
+        normal[rng.integers(0, 3)] *= rng.choice([0.0, 1e-3, 1.0])  # some nearly along a face
+        normal /= np.linalg.norm(normal)
+        u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        tris.append([point + 20 * u, point - 10 * u + 17 * v, point - 10 * u - 17 * v])
+    v = np.asarray(tris, np.float32).reshape(-1, 3)
+    box = np.array([[0, 0, 0], [2, 2, 2]], np.float32)  # the bounds: a 2 x 2 x 2 grid of unit cells
+    faces = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
+    # Two tiny triangles at opposite corners fix the scene's bounds to the box.
+    v = np.vstack([v, box[0], box[0] + 1e-3 * np.eye(3, dtype=np.float32)[:2], box[1], box[1] - 1e-3 * np.eye(3, dtype=np.float32)[:2]])
+    faces = np.vstack([faces, len(tris) * 3 + np.arange(6, dtype=np.uint32).reshape(2, 3)])
+    return Scene("grazing", v.astype(np.float32), faces, "test")
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_planes_grazing_the_shafts_give_the_reference_lists(device, monkeypatch, n):
+    """The exact test's second half finds one point of the triangle's plane inside the pushed
+    volume (the axis, a hull corner segment, the reach bound, the volume's edges): on planes that
+    graze the shafts its lists are the numpy reference's, within the band around eps."""
+    monkeypatch.setenv("LSBENCH_LS_TEST", "edges")
+    scene = grazing_planes_scene()
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=(2, 2, 2), ls_n=n))
+    assert_reference_lists(device, scene, (2, 2, 2), n, "edges", built)
     built.release()
 
 
@@ -223,6 +262,7 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
         assert st["ls_cell_batches"] > 3 and not st["ls_pair_bits"], st
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)
     ls_ids, offs, cand = read_linespaces(built)
+    assert st["non_empty_shafts"] == np.count_nonzero(np.diff(offs))
     np.testing.assert_array_equal(offs, whole_lists[1])
     np.testing.assert_array_equal(ls_ids, whole_lists[0])
     for lo, hi in zip(offs[:-1], offs[1:]):  # the voxel lists may come in another order between builds
@@ -274,12 +314,14 @@ def test_cell_past_the_loop_budget(device):
 
 def test_shaft_volumes_are_hulls_of_their_patches(device):
     """The device's facet planes: every patch corner is inside every plane, and each plane touches
-    at least three corners (a real facet)."""
+    at least three corners (a real facet); after them the shaft's axis (its patches' centres) and
+    the patches' mask indices."""
     n = 2
     geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
-    buf = device.alloc("ls_planes", 16 * linespace.LS_MAX_PLANES * 15 * n**4)
+    buf = device.alloc("ls_planes", 16 * linespace.LS_PLANE_SLOTS * 15 * n**4)
     device.dispatch(linespace.LS_PLANES, 15 * n**4, {"ls_planes": buf}, linespace.uniforms(geometry, n))
-    planes = device.read(buf, np.float32).reshape(15 * n**4, linespace.LS_MAX_PLANES, 4)
+    slots = device.read(buf, np.float32).reshape(15 * n**4, linespace.LS_PLANE_SLOTS, 4)
+    planes = slots[:, :linespace.LS_MAX_PLANES]
     s = 0
     for a, b in FACE_PAIRS:
         for pa in range(n * n):
@@ -291,6 +333,10 @@ def test_shaft_volumes_are_hulls_of_their_patches(device):
                 dist = pts @ real[:, :3].T + real[:, 3]
                 assert dist.max() < 1e-5
                 assert (np.abs(dist) < 1e-5).sum(0).min() >= 3
+                centres = np.vstack([patch_points(a, pa, n, np.array([[0.5, 0.5]])),
+                                     patch_points(b, pb, n, np.array([[0.5, 0.5]]))])
+                np.testing.assert_allclose(slots[s, 8:, :3], centres, atol=1e-6)
+                assert list(slots[s, 8:, 3]) == [a * n * n + pa, b * n * n + pb]
                 s += 1
     device.release(buf)
 

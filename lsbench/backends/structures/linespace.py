@@ -73,8 +73,10 @@ LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "ui
 # The build's batch of cells (linespace.h: ls_shaft_kernel, ls_masks_kernel).
 LS_BATCH_UNIFORMS = LS_UNIFORMS + (Uniform("ls_chunk", "uint"), Uniform("ls_item_base", "uint"),
                                    Uniform("ls_ref_base", "uint"), Uniform("ls_cell_first", "uint"),
-                                   Uniform("ls_cell_end", "uint"), Uniform("ls_bits_base", "uint"))
+                                   Uniform("ls_cell_end", "uint"), Uniform("ls_bits_base", "uint"),
+                                   Uniform("ls_one_chunk", "uint"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
+LS_PLANE_SLOTS = 10  # per shaft in ls_planes: the facet planes, then the axis' two ends (linespace.h)
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
 LS_EPS = 1e-3
@@ -86,10 +88,11 @@ LS_MAX_CHUNKS = 4
 # llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/scene.h); a
 # count or fill work item runs one loop iteration per candidate of its chunk plus the exact test's
 # inner loops where the compiler keeps them (SAT: at most 12; clipping: 8 planes x 2 loops of at
-# most LS_MAX_POLY = 16 vertices) and the cell lookup (< 32), so chunks of 4095 (SAT) or 240
-# (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk per cell.
+# most LS_MAX_POLY = 16 vertices; edges: the hull's 8 corners and at most 28 edge slots) and the
+# cell lookup (< 32), so chunks of 4095 (SAT), 1236 (edges) or 240 (clipping) candidates stay
+# inside the budget. PoCL has no such limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
-LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 28 + 16}
+LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 8 + 28 + 16}
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -109,7 +112,7 @@ LS_MAX_SETS_PER_CELL = 1 << 16
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
 # The edges of each shaft volume pushed out by LS_EPS (the "edges" exact test): LS_EDGE_SLOTS float4.
-LS_EDGE_SLOTS = 1 + 2 * 28  # must match shaders/common/linespace.h (LS_MAX_EDGES)
+LS_EDGE_SLOTS = 1 + 2 * 28 + 8  # must match shaders/common/linespace.h (LS_MAX_EDGES, the hull's corners)
 LS_EDGES = KernelSpec(
     "ls_edges", LS_HEADERS_NO_SCENE, "ls_edges_kernel",
     (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w")), LS_UNIFORMS)
@@ -379,6 +382,11 @@ class BuildPlan:
     def batch_refs(self, c0: int, c1: int) -> int:
         return int(self.ref_bases[c1] - self.ref_bases[c0])
 
+    def one_chunk(self, c0: int, c1: int, per_cell: int) -> bool:
+        """Every cell of [c0, c1) is one chunk: a work item's cell is then found by a division
+        instead of a search over the cells (linespace.h: ls_shaft_kernel)."""
+        return int(self.item_bases[c1] - self.item_bases[c0]) == per_cell * (c1 - c0)
+
 
 def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
                mask_bytes: int = LS_MASK_BYTES, bits_bytes: int | None = None) -> BuildPlan:
@@ -518,7 +526,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
 
     try:
-        planes = temp("ls_planes", 16 * LS_MAX_PLANES * per_cell, zero=False)
+        planes = temp("ls_planes", 16 * LS_PLANE_SLOTS * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
         by_edges = exact_test(device) == "edges"
         edges = temp("ls_edges", 16 * LS_EDGE_SLOTS * per_cell if by_edges else 4, zero=False)
@@ -554,7 +562,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
                         ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
-                        ls_bits_base=bits_base)
+                        ls_bits_base=bits_base, ls_one_chunk=int(plan.one_chunk(c0, c1, per_cell)))
 
         def find_sets(c0: int, c1: int, bits_base: int) -> None:
             for g0 in range(c0, c1, group_cells):
