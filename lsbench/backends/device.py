@@ -115,6 +115,11 @@ class Device(abc.ABC):
     # kernel's vector types are its only SIMD (PoCL); 1 (a ray per work item) where the driver runs
     # work items in SIMD lanes itself (llvmpipe, GPUs).
     packet_width: int = 1
+    # True where the work items of a work group run one after the other on one core (PoCL's CPU
+    # device), False where the driver runs them in SIMD lanes (llvmpipe, GPUs): a loop that one work
+    # item in 32 runs for its neighbours is cheap on the first and stalls the other lanes on the
+    # second (linespace.h: ls_set_len_kernel).
+    serial_work_items: bool = False
 
     @abc.abstractmethod
     def release(self, buf: DeviceBuffer) -> None:

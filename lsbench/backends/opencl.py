@@ -74,7 +74,8 @@ class OpenCLDevice(Device):
         self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
         # PoCL runs a CPU device's work items one after the other (docs/profiles.md, section 1): a
         # packet of rays per work item puts them in the vector lanes (Device.packet_width).
-        self.packet_width = CPU_PACKET_WIDTH if self.device.type & cl.device_type.CPU else 1
+        self.serial_work_items = bool(self.device.type & cl.device_type.CPU)
+        self.packet_width = CPU_PACKET_WIDTH if self.serial_work_items else 1
         self._programs: dict = {}
         self._kernel_log: list | None = None  # (kernel name, event) while start_kernel_log is on
         self._scan = None

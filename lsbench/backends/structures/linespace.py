@@ -93,6 +93,8 @@ LS_MAX_CHUNKS = 4
 # inside the budget. PoCL has no such limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
 LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 8 + 28 + 16}
+# Shafts counted per atomic in ls_set_len where work items run one after the other (linespace.h).
+LS_NONEMPTY_BLOCK = 32
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -609,7 +611,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def bound(spec: KernelSpec) -> KernelSpec:
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
-        device.dispatch(bound(LS_SET_LEN), n_shafts, sets_bufs, u)
+        set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u") if device.serial_work_items else LS_SET_LEN
+        device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below

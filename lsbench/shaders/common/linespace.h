@@ -945,23 +945,29 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
 
 #ifdef KERNEL_ls_set_len
 // After the item scan: each head writes its set's length (then scanned into the set offsets);
-// the non-empty shafts are counted (stats), 32 shafts per atomic: one counter taking an atomic per
-// shaft cost more than the rest of this kernel on PoCL (0.35 of 0.4 s, Sponza 64³ N=3).
+// the non-empty shafts are counted (stats), LS_NONEMPTY_BLOCK shafts per atomic where work
+// items run one after the other (32) (one counter taking an atomic per shaft was 0.35 of this kernel's
+// 0.4 s on PoCL, Sponza 64³ N=3), one per shaft where they run in SIMD lanes (on llvmpipe the one
+// lane in 32 that loops for its neighbours made the kernel 4.5x slower; linespace.py sets the define
+// from Device.serial_work_items).
 INLINE uint ls_shaft_len(CTX_PARAM uint s) {
     LsItems it = ls_shaft_items(CTX_ARG s);
     return LS_ITEM(it.first + it.chunks) - LS_ITEM(it.first);
 }
 
 INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
+    uint len = ls_shaft_len(CTX_ARG s);
     uint set = LS_SHAFT_SET(s);
-    if ((set & LS_SET_HEAD) != 0u)
-        LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), ls_shaft_len(CTX_ARG s));
-    if ((s & 31u) == 0u) {
-        uint non_empty = 0u;
-        for (uint k = s; k < min(s + 32u, V(n_items)); ++k)
-            if (ls_shaft_len(CTX_ARG k) > 0u) non_empty += 1u;
-        if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
-    }
+    if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), len);
+#ifdef LS_NONEMPTY_BLOCK
+    if (s % LS_NONEMPTY_BLOCK != 0u) return;
+    uint non_empty = len > 0u ? 1u : 0u;
+    for (uint k = s + 1u; k < min(s + LS_NONEMPTY_BLOCK, V(n_items)); ++k)
+        if (ls_shaft_len(CTX_ARG k) > 0u) non_empty += 1u;
+    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
+#else
+    if (len > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
+#endif
 }
 #endif
 
