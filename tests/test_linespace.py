@@ -196,7 +196,7 @@ def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_k
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     assert built.stats["ls_work_items"] == built.stats["shafts"]  # one chunk per cell here
     assert_reference_lists(device, scene, res, n, test_kind, built)
-    _, offs, _ = read_linespaces(built)  # the count of non-empty shafts (32 per atomic on the device)
+    _, offs, _ = read_linespaces(built)  # the count of non-empty shafts (32 per atomic on PoCL)
     assert built.stats["non_empty_shafts"] == np.count_nonzero(np.diff(offs)) > 32
     built.release()
 

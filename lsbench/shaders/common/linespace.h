@@ -177,6 +177,22 @@ INLINE LsShaft ls_decode(uint n, uint shaft) {
     return sh;
 }
 
+// Corner k (0..7) of the shaft's hull: patch a's corners 0..3, then patch b's.
+INLINE float3 ls_hull_corner(uint n, LsShaft sh, int k) {
+    return k < 4 ? ls_patch_corner(n, sh.fa, sh.pa, k) : ls_patch_corner(n, sh.fb, sh.pb, k - 4);
+}
+
+// The shaft's faces and patches from its two mask indices (face * N^2 + patch, ls_planes' axis
+// slots): two divisions where ls_decode loops over the face pairs.
+INLINE LsShaft ls_shaft_of_masks(uint n, uint mask_a, uint mask_b) {
+    LsShaft sh;
+    sh.fa = I32(mask_a / (n * n));
+    sh.fb = I32(mask_b / (n * n));
+    sh.pa = mask_a % (n * n);
+    sh.pb = mask_b % (n * n);
+    return sh;
+}
+
 // Plane (n.xyz, w) of a shaft facet: a point p is outside by dot(n, p) + w (unit n).
 INLINE float ls_plane_dist(float4 pl, float3 p) {
     return dot(pl.xyz, p) + pl.w;
@@ -194,10 +210,7 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
     uint n = V(ls_n);
     LsShaft sh = ls_decode(n, shaft);
     float3 P[8];
-    for (int k = 0; k < 4; ++k) {
-        P[k] = ls_patch_corner(n, sh.fa, sh.pa, k);
-        P[4 + k] = ls_patch_corner(n, sh.fb, sh.pb, k);
-    }
+    for (int k = 0; k < 8; ++k) P[k] = ls_hull_corner(n, sh, k);
     float4 planes[LS_MAX_PLANES];
     int count = 0;
     for (int i = 0; i < 8; ++i)
@@ -234,8 +247,8 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
         V(ls_planes)[pb + U32(q)] = q < count ? planes[q] : make_float4(0.0f, 0.0f, 0.0f, -1.0f);
     float3 ca = (P[0] + P[3]) * 0.5f;
     float3 cb = (P[4] + P[7]) * 0.5f;
-    V(ls_planes)[pb + 8u] = make_float4(ca.x, ca.y, ca.z, F32(U32(sh.fa) * n * n + sh.pa));
-    V(ls_planes)[pb + 9u] = make_float4(cb.x, cb.y, cb.z, F32(U32(sh.fb) * n * n + sh.pb));
+    V(ls_planes)[pb + U32(LS_MAX_PLANES)] = make_float4(ca.x, ca.y, ca.z, F32(U32(sh.fa) * n * n + sh.pa));
+    V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u] = make_float4(cb.x, cb.y, cb.z, F32(U32(sh.fb) * n * n + sh.pb));
 }
 #endif  // shaft volumes
 
@@ -244,7 +257,8 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 // Per shaft: (count, R, 0, 0), then each edge's two ends, then the 8 corners of the shaft's hull
 // (its patches' corners). R bounds how far the pushed volume reaches beyond the hull: the largest
 // distance from an edge end (the volume's vertices) to its nearest corner.
-#define LS_EDGE_SLOTS (1 + 2 * LS_MAX_EDGES + 8)
+#define LS_EDGE_CORNERS (1 + 2 * LS_MAX_EDGES)  // where the corners start
+#define LS_EDGE_SLOTS (LS_EDGE_CORNERS + 8)
 
 #ifdef KERNEL_ls_edges
 // ---- The edges of the shaft volume pushed out by ls_eps (the "edges" exact test) -------------
@@ -259,10 +273,7 @@ INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
     uint n = V(ls_n);
     LsShaft sh = ls_decode(n, shaft);
     float3 P[8];  // the hull's corners: its patches'
-    for (int k = 0; k < 4; ++k) {
-        P[k] = ls_patch_corner(n, sh.fa, sh.pa, k);
-        P[4 + k] = ls_patch_corner(n, sh.fb, sh.pb, k);
-    }
+    for (int k = 0; k < 8; ++k) P[k] = ls_hull_corner(n, sh, k);
     float reach = 0.0f;  // R: the largest distance from an edge end to its nearest corner
     uint count = 0u;
     for (int i = 0; i < LS_MAX_PLANES; ++i) {
@@ -301,7 +312,7 @@ INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
             }
         }
     }
-    uint corners = base + 1u + 2u * U32(LS_MAX_EDGES);
+    uint corners = base + U32(LS_EDGE_CORNERS);
     for (int k = 0; k < 8; ++k) V(ls_edges)[corners + U32(k)] = make_float4(P[k].x, P[k].y, P[k].z, 0.0f);
     // 1 % and 1e-6 over what float32 measured: a bound, not an estimate.
     V(ls_edges)[base] = make_float4(F32(count), reach * 1.01f + 1e-6f, 0.0f, 0.0f);
@@ -465,7 +476,7 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
     // The axis lies on one side (da != 0). A hull corner on the other side gives a point of the
     // hull in the plane, on the segment from ca to that corner.
     uint base = shaft * U32(LS_EDGE_SLOTS);
-    uint corners = base + 1u + 2u * U32(LS_MAX_EDGES);
+    uint corners = base + U32(LS_EDGE_CORNERS);
     float side = da > 0.0f ? 1.0f : -1.0f;
     float nearest = INF_F;  // the hull's least distance to the plane (x |nrm|), on ca's side
     for (uint k = 0u; k < 8u; ++k) {
@@ -546,7 +557,7 @@ INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p
 
 // Does the triangle meet the shaft? Steps 1-3 above for candidate i of the cell (dense mask row r).
 INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, float3 lo, float3 inv, float eps,
-                         uint n, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
+                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
                          float4 p5, float4 p6, float4 p7) {
     uint ma = V(ls_masks)[r + mask_a];
     uint mb = V(ls_masks)[r + mask_b];
@@ -577,7 +588,7 @@ INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, flo
 #ifdef LS_CLIP_SH
     return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // 3. exact: Sutherland-Hodgman
 #else
-    return ls_sat_meets(n, ls_decode(n, shaft), a, b, c, eps);  // 3. exact: separating axes
+    return ls_sat_meets(n, sh, a, b, c, eps);  // 3. exact: separating axes
 #endif
 }
 
@@ -630,12 +641,13 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint patches = 6u * n * n;
     uint ref0 = V(ls_ref_bases)[cell] - V(ls_ref_base) + (first_i - begin);  // mask row of first_i
     uint pb = shaft * U32(LS_PLANE_SLOTS);
-    float4 axis_a = V(ls_planes)[pb + 8u];  // the patches' centres and mask indices
-    float4 axis_b = V(ls_planes)[pb + 9u];
+    float4 axis_a = V(ls_planes)[pb + U32(LS_MAX_PLANES)];  // the patches' centres and mask indices
+    float4 axis_b = V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u];
     float3 ca = axis_a.xyz;
     float3 cb = axis_b.xyz;
     uint mask_a = U32(axis_a.w);
     uint mask_b = U32(axis_b.w);
+    LsShaft sh = ls_shaft_of_masks(n, mask_a, mask_b);  // the SAT's patch corners (unused otherwise)
     float4 p0 = V(ls_planes)[pb];
     float4 p1 = V(ls_planes)[pb + 1u];
     float4 p2 = V(ls_planes)[pb + 2u];
@@ -653,7 +665,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint word = 0u;
 #endif
     for (uint i = first_i; i < end_i; ++i) {
-        int meets = ls_pair_meets(CTX_ARG i, (ref0 + (i - first_i)) * patches, mask_a, mask_b, lo, inv, eps, n,
+        int meets = ls_pair_meets(CTX_ARG i, (ref0 + (i - first_i)) * patches, mask_a, mask_b, lo, inv, eps, n, sh,
                                   shaft, ca, cb, p0, p1, p2, p3, p4, p5, p6, p7);
         if (meets != 0) {
 #ifdef KERNEL_ls_fill
