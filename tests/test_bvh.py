@@ -96,7 +96,11 @@ def test_the_device_build_is_a_valid_bvh(device, scene_name, leaf_size, quality)
                                                               options={"bvh_quality": quality}))
     try:
         sizes = check_tree(built, scene, leaf_size)
-        assert built.memory_bytes == 128 * built.stats["nodes"] + 4 * scene.triangle_count
+        assert built.memory_bytes == 128 * built.stats["nodes"] + (4 + 48) * scene.triangle_count
+        # The trace's records, in leaf order (LIST_ORDER_RECORDS): record i is voxel_tris[i]'s.
+        tris = built.device.read(built.buffers["voxel_tris"], np.uint32)
+        records = built.device.read(built.buffers["tri_verts"], np.float32)
+        assert np.array_equal(records.reshape(-1, 12), backends.triangle_records(scene).reshape(-1, 12)[tris])
         # Each quality pass only takes a change that lowers the SAH cost: the collapse chooses per
         # node, the treelets rebuild only where cheaper; on the spheres the restructuring gains.
         stats = built.stats

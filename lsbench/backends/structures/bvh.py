@@ -26,6 +26,12 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    children's boxes side by side in bvh_nodes, 96 bytes; refs and leaf counts in bvh_links, 32),
    into buffers of exactly that size. Sponza: 4-wide nodes take 40 node visits per primary ray
    where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
+7. Records (bvh only): the triangles' records (trace.h, 48 bytes each) gathered into leaf order
+   (leaf_order_records), so a leaf's records are adjacent and the trace loads them by list
+   position, not through the id (LIST_ORDER_RECORDS). With the walk's prefetch of what it pushes
+   (bvh.h, BVH_PREFETCH_ENTRY; CPUs only), Sponza 512² on PoCL: incoherent rays 0.82 of the device
+   time, primary rays 0.88 (docs/profiles.md, section 9). bvh-ls keeps the scene's records in
+   triangle order: its Line Space lists hold triangle ids.
 
 Speed (`lsbench speedtest --size 512x512`, the best setting of every structure in speedtest.toml,
 Sponza from its interior camera, Embree in the same worker on the 2-core machine): one ray per work
@@ -113,10 +119,17 @@ WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
                                     Buf("bvh_ranges", "uint", "r"), Buf("bvh_keep", "uint", "r"),
                                     Buf("bvh_ids", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
                                     Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
-BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE)
+RECORDS = KernelSpec("bvh_records", BVH_HEADERS_NO_SCENE, "bvh_records_kernel",
+                     (Buf("voxel_tris", "uint", "r"), Buf("tri_verts", "float4", "r"),
+                      Buf("bvh_records", "float4", "w")), ())
+BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE, RECORDS)
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
-TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS, GRID_UNIFORMS)
+# bvh reads its triangle records in leaf order (build step 7; trace.h LIST_ORDER_RECORDS); bvh-ls
+# keeps the scene's, in triangle order, because its Line Space lists hold triangle ids.
+TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS,
+                       GRID_UNIFORMS).with_defines(LIST_ORDER_RECORDS=1)
+RECORD_BYTES = 48  # a triangle's record: 3 float4 (trace.h, tri_verts)
 
 
 def check_leaf_size(value) -> int:
@@ -267,7 +280,28 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     leaf_size = check_leaf_size(params.leaf_size)
     buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
                                quality=params.options.get("bvh_quality", "treelet"))
+    try:
+        buffers["tri_verts"] = leaf_order_records(device, scene_buffers, buffers["voxel_tris"], n_tris)
+    except BaseException:
+        for b in buffers.values():
+            device.release(b)
+        raise
     return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats), stats)
+
+
+def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBuffer, n_tris: int) -> DeviceBuffer:
+    """Build step 7: the scene's triangle records gathered into the order of voxel_tris, so that a
+    leaf's records lie side by side and the trace loads them by list position (trace.h,
+    LIST_ORDER_RECORDS). The structure's tri_verts: it takes the scene's place in the trace's
+    bindings, and its bytes are the structure's."""
+    records = device.alloc("tri_verts", RECORD_BYTES * n_tris, zero=False)
+    try:
+        device.dispatch(RECORDS, n_tris, {"voxel_tris": voxel_tris, "tri_verts": scene_buffers["tri_verts"],
+                                          "bvh_records": records}, {})
+    except BaseException:
+        device.release(records)
+        raise
+    return records
 
 
 def traversal(spec: KernelSpec, stats: dict) -> KernelSpec:

@@ -300,6 +300,10 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
 
 // A candidate's vertices from tri_verts (float4 triples in triangle order, bound by every trace
 // kernel: backends/kernels.py TRACE_SCENE_BUFFERS): one contiguous record, no face-index indirection.
+// LIST_ORDER_RECORDS: the structure binds its own tri_verts with the records in the order of its
+// plain lists (voxel_tris), and the candidate loop loads the record at the list position (`bvh`,
+// whose leaves are ranges of one list: a leaf's records are then adjacent, and their load does not
+// wait for the id's); the id still comes from voxel_tris.
 INLINE Triangle load_candidate(CTX_PARAM uint tri) {
     Triangle t;
     t.a = V(tri_verts)[3u * tri].xyz;
@@ -338,7 +342,11 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
 #else
         uint tri = V(voxel_tris)[i];
 #endif
+#ifdef LIST_ORDER_RECORDS
+        Triangle T = load_candidate(CTX_ARG i);
+#else
         Triangle T = load_candidate(CTX_ARG tri);
+#endif
         float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
         tr.best = closer(tr.best, t, I32(tri), tr.tmin);
 #ifdef QUERY_ANY

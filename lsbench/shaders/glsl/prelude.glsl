@@ -39,6 +39,7 @@
 #define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
 #define ATOMIC_CAS(lvalue, expected, v) atomicCompSwap(lvalue, expected, v)
 #define LANG_GLSL 1
+#define PREFETCH(p)  // GLSL has no prefetch (opencl/prelude.cl: only CPUs need it)
 // Device clock for the profiling counters (COUNT_WORK builds; Delgado Kraemer 2019, 6.3, Fig. 20b):
 // `uint c0 = CLOCK_START(); ... CLOCK_ELAPSED(c0)` gives uint ticks, a 32-bit difference that
 // stays right across one wrap of the low word. The tick source CLOCK_NOW() is picked in

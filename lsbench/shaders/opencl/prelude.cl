@@ -31,6 +31,15 @@
 #define ATOMIC_XCHG(lvalue, v) atomic_xchg(&(lvalue), v)
 #define ATOMIC_CAS(lvalue, expected, v) atomic_cmpxchg(&(lvalue), expected, v)
 #define LANG_OPENCL 1
+// A software prefetch of the cache line at address p, where the kernel runs on a CPU: PoCL compiles
+// for the host with clang, and its OpenCL prefetch() is a no-op there. A walk prefetches the nodes
+// and leaves it pushes, so their loads meet the cache when popped (bvh.h, BVH_SLOT). GPUs hide the
+// latency with other warps: there (and in GLSL) it expands to nothing.
+#if defined(__clang__) && (defined(__x86_64__) || defined(__aarch64__))
+#define PREFETCH(p) __builtin_prefetch(p)
+#else
+#define PREFETCH(p)
+#endif
 // Device clock for the profiling counters (COUNT_WORK builds): `uint c0 = CLOCK_START(); ...
 // CLOCK_ELAPSED(c0)` gives uint ticks (32-bit difference). OpenCL C has no clock builtin; the
 // tick source CLOCK_NOW() is picked in common/trace.h, after the kernel's defines: NVIDIA's
