@@ -15,6 +15,10 @@ Where the device runs work items one at a time on a CPU (Device.packet_width: Po
 are coherent (packet_width below: primary rays, shadow rays to a light), a structure with a packet
 traversal (bvh) traces a packet of rays per work item in the vector lanes (shaders/common/bvh.h);
 env LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) decides it by hand.
+
+A ray set without locality (consecutive rays starting far apart: the incoherent set) is traced in
+the order of its origins' cells, sorted on the device inside the timed trace (ray_order.py; env
+LSBENCH_RAY_ORDER = auto, given or origin-cells).
 """
 from __future__ import annotations
 
@@ -23,11 +27,12 @@ import time
 
 import numpy as np
 
+from . import ray_order
 from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
 from .kernels import SLICE_WORDS
-from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, packeted, sliced,
-                              with_work_counters)
+from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, ordered, packeted,
+                              sliced, with_work_counters)
 
 BACKENDS = ("glsl", "opencl")
 # Hit id of a ray whose traversal loops the driver cut short (cut_hit, shaders/common/trace.h).
@@ -217,7 +222,34 @@ def _launch_spec(spec, n: int, uniforms: dict, width: int):
     return packeted(spec, width), -(-n // width), dict(uniforms, packet_rays=n)
 
 
-def _trace_buffers(built: Built, rays, work: bool):
+def trace_order(built: Built, rays, width: int, budget: int | None) -> tuple[str, dict | None]:
+    """The order the rays of this trace go to the device in, and the probe that chose it: "given"
+    (an image's tiles, or the set's own order) or "origin-cells" (sorted on the device by their
+    origins' cells over the structure's bounds), as ray_order.choose says; where it says
+    "measure", the faster of the two in whole timed traces (the sort included): two rounds of one
+    warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per structure and ray
+    set (Built.ray_orders), so the verified, counted and timed traces run the same order."""
+    choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, width)
+    if choice != "measure":
+        return choice, None
+    key = (rays.content_hash, rays.query, budget)
+    if key not in built.ray_orders:
+        probe = {order: [] for order in ("given", "origin-cells")}
+        for _ in range(2):
+            for order, seconds in probe.items():
+                seconds.append(min(_timed_trace(built, rays, width, budget, order, 1, 1, None).seconds))
+        best = {order: min(seconds) for order, seconds in probe.items()}
+        built.ray_orders[key] = (min(best, key=best.get), best)
+    return built.ray_orders[key]
+
+
+def _bounds(built: Built):
+    g = built.geometry
+    lo = np.asarray(g.origin, np.float64)
+    return lo, lo + np.asarray(g.voxel_size, np.float64) * np.asarray(g.resolution, np.float64)
+
+
+def _trace_buffers(built: Built, rays, work: bool, order: str = "given"):
     d = built.device
     bufs = dict(built.scene_buffers)
     bufs.update(built.buffers)
@@ -226,7 +258,19 @@ def _trace_buffers(built: Built, rays, work: bool):
     bufs["hit_t"] = d.alloc("hit_t", 4 * rays.count, zero=False)
     if work:
         bufs["work"] = d.alloc("work", 16 * rays.count)
+    if order == "origin-cells":
+        bufs.update(ray_order.alloc(d, rays.count))
     return bufs
+
+
+_TRACE_BUFFERS = ("rays", "hit_prim", "hit_t", "work", "slice_state", "order_counts", "order_ids")
+
+
+def _sort_steps(built: Built, rays, order: str) -> list:
+    """The launches before the trace kernel (ray_order.sort_steps), none for the given order."""
+    if order != "origin-cells":
+        return []
+    return ray_order.sort_steps(rays.count, ray_order.uniforms(_bounds(built)))
 
 
 def _release(device, bufs, names):
@@ -257,16 +301,18 @@ def _dispatch(d: Device, *args) -> None:
     d.dispatch(*args)
 
 
-def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int, launch) -> int:
+def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int, launch, first=None) -> int:
     """Traversal in bounded slices (shaders/common/trace.h): launch the kernel over the unfinished
     rays, `budget` loop iterations each, until every ray has its hit; returns the launches made.
     hit_prim says which rays are left (SLICE_PENDING); a ray whose loops the driver still cut
     (LOOP_CUT_PRIM: llvmpipe's limit is per SIMD group) kept its earlier state and runs again with
-    half the budget; cut at a budget of 1, the case fails naming the limit."""
+    half the budget; cut at a budget of 1, the case fails naming the limit. `first`: the first
+    slice's ray list when the rays go in another order than given (ray_order: order_ids, read
+    back; the later lists keep its order)."""
     state = bufs["slice_state"]
     d.fill_zero(state)  # phase 0: every ray starts fresh
     list_base = SLICE_WORDS * n
-    pending = np.arange(n, dtype=np.uint32)
+    pending = np.arange(n, dtype=np.uint32) if first is None else first()
     slices = 0
     while pending.size:
         d.write(state, pending, 4 * list_base)
@@ -290,26 +336,31 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     spec = with_work_counters(spec, d) if work else spec
-    bufs = _trace_buffers(built, rays, work)
     budget = slice_budget(d, budget)
     width = packet_width(built, rays, budget)
+    ordered, probe = trace_order(built, rays, width, budget)
+    before = _sort_steps(built, rays, ordered)
+    bufs = _trace_buffers(built, rays, work, ordered)
     try:
+        for step, items, uniforms in before:
+            d.dispatch(step, items, bufs, uniforms)
         if budget is None:
-            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width)
+            kernel, items, uniforms = _launch_spec(ordered_spec(spec, before), rays.count, built.uniforms, width)
             d.dispatch(kernel, items, bufs, uniforms)
             slices = 1
         else:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget, _dispatch)
+            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget, _dispatch,
+                                 _order_ids(d, bufs, rays.count, before))
         d.finish()
-        order = launch_order(rays)
+        order = launch_order(rays)  # an image's tiles; a sorted order stores its hits in place
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
                     _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices,
-                    slice_budget=budget, packet=width)
+                    slice_budget=budget, packet=width, order=ordered, order_probe=probe)
         if work:
             hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
     finally:
-        _release(d, bufs, ("rays", "hit_prim", "hit_t", "work", "slice_state"))
+        _release(d, bufs, _TRACE_BUFFERS)
     cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
     if cut:
         raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
@@ -322,19 +373,41 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     """Device time of the plain (counter-free) trace kernel of the ray set's query, warm-up
     launches not counted; `between()` runs after each timed launch, untimed (Device.time_dispatch).
     In bounded slices (slice_budget) a timed trace is all its slices, their device times summed,
-    warm-up traces and `between()` around whole traces."""
+    warm-up traces and `between()` around whole traces; in a sorted order (trace_order) the sort's
+    launches are in it too."""
+    budget = slice_budget(built.device, budget)
+    width = packet_width(built, rays, budget)
+    return _timed_trace(built, rays, width, budget, trace_order(built, rays, width, budget)[0], warmup, repeats,
+                        between)
+
+
+def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: str, warmup: int, repeats: int,
+                 between) -> Timing:
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
-    bufs = _trace_buffers(built, rays, False)
-    budget = slice_budget(d, budget)
+    before = _sort_steps(built, rays, ordered)
+    bufs = _trace_buffers(built, rays, False, ordered)
     try:
-        if budget is None:
-            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, packet_width(built, rays, budget))
+        if budget is None and not before:
+            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width)
             return d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
-        bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-        spec = sliced(spec)
+        if budget is not None:
+            bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
+            spec = sliced(spec)
+        else:
+            spec = ordered_spec(spec, before)
+
+        def whole_trace(launch):  # the sort, then the trace (one launch, or slices)
+            for step, items, uniforms in before:
+                launch(d, step, items, bufs, uniforms)
+            if budget is None:
+                launch(d, spec, rays.count, bufs, built.uniforms)
+            else:
+                _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, launch,
+                            _order_ids(d, bufs, rays.count, before))
+
         for _ in range(max(warmup, 1)):
-            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, _dispatch)
+            whole_trace(_dispatch)
         d.finish()
         seconds, clocks = [], set()
         for _ in range(repeats):
@@ -345,13 +418,27 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
                 spent.append(s)
                 clocks.add(clock)
 
-            _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, timed)
+            whole_trace(timed)
             seconds.append(sum(spent))
             if between is not None:
                 between()
-        return Timing(seconds, " + ".join(sorted(clocks)) + ", summed over the slices")
+        parts = ([] if budget is None else ["summed over the slices"]) + (["with the rays' sort"] if before else [])
+        return Timing(seconds, " + ".join(sorted(clocks)) + ", " + ", ".join(parts))
     finally:
-        _release(d, bufs, ("rays", "hit_prim", "hit_t", "slice_state"))
+        _release(d, bufs, _TRACE_BUFFERS)
+
+
+def ordered_spec(spec, sort_steps: list):
+    """The unsliced trace kernel of a sorted order (ORDERED_RAYS), or spec as it is."""
+    return ordered(spec) if sort_steps else spec
+
+
+def _order_ids(d: Device, bufs: dict, n: int, sort_steps: list):
+    """The first slice's ray list of a sorted order: order_ids, read back when the slices start
+    (after the sort's launches), or None (the given order)."""
+    if not sort_steps:
+        return None
+    return lambda: d.read(bufs["order_ids"], np.uint32, n)
 
 
 def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None, line_spaces: bool) -> None:
@@ -366,7 +453,13 @@ def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | 
              if name == "voxel_tris" or (line_spaces and name.startswith("ls_shaft_tris"))]
     if victim is None:
         victim = int(np.argmax(np.bincount(device.read(buffers["voxel_tris"], np.uint32))))
+    other = (victim + 1) % scene.triangle_count
     for name in lists:
         tris = device.read(buffers[name], np.uint32)
-        tris[tris == victim] = (victim + 1) % scene.triangle_count
+        dropped = tris == victim
+        tris[dropped] = other
         buffers[name] = device.upload(name, tris)
+        if name == "voxel_tris" and "tri_verts" in buffers:  # records in list order (bvh): the same entries
+            records = device.read(buffers["tri_verts"], np.float32).reshape(-1, 12)
+            records[dropped] = triangle_records(scene).reshape(-1, 12)[other]
+            buffers["tri_verts"] = device.upload("tri_verts", records.ravel())

@@ -106,6 +106,10 @@ WORK_BUFFER = Buf("work", "uint4", "w")
 # slice_budget is the loop iterations a ray may run in one launch.
 SLICE_WORDS = 16  # must match shaders/common/trace.h
 SLICE_BUFFER = Buf("slice_state", "uint", "rw")
+# A trace of rays in another order than given (backends/ray_order.py): work item g traces ray
+# order_ids[g] (ORDERED_RAYS, shaders/common/trace.h); only unsliced kernels bind it (a sliced one
+# takes its order from the slice's ray list), so it costs no binding over a sliced kernel's 16.
+ORDER_BUFFER = Buf("order_ids", "uint", "r")
 SLICE_UNIFORMS = (Uniform("slice_budget", "uint"), Uniform("slice_list_base", "uint"))
 # The ray count of a packet traversal (BVH_PACKET rays per work item; shaders/common/bvh.h): the last
 # packet's lanes past it trace nothing.

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..device import Device, DeviceBuffer, as_float4, as_int4
-from ..kernels import PACKET_UNIFORM, SLICE_BUFFER, SLICE_UNIFORMS, WORK_BUFFER, KernelSpec
+from ..kernels import ORDER_BUFFER, PACKET_UNIFORM, SLICE_BUFFER, SLICE_UNIFORMS, WORK_BUFFER, KernelSpec
 
 # Overlap epsilon of the conservative voxelization, in voxel units: a triangle within this
 # distance of a voxel counts as overlapping it, so float32 rounding never drops a pair.
@@ -120,6 +120,9 @@ class Built:
     trace_spec: KernelSpec
     build_seconds: float = 0.0
     stats: dict = field(default_factory=dict)
+    # The ray order measured for each ray set traced on this structure (backends.trace_order):
+    # (rays' hash, query, slice budget) -> (order, {order: probe seconds})
+    ray_orders: dict = field(default_factory=dict)
 
     def memory(self) -> dict[str, dict[str, int]]:
         return {name: {"allocated": b.nbytes, "used": b.used} for name, b in self.buffers.items()}
@@ -141,6 +144,8 @@ class Hits:
     slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
     slice_budget: int | None = None  # loop iterations per ray and launch it started with (None: unbounded)
     packet: int = 1  # rays per work item (backends.packet_width: more than 1, the packet traversal)
+    order: str = "given"  # the order the rays were traced in (backends.trace_order)
+    order_probe: dict | None = None  # where the order was measured: device seconds of each order
 
 
 QUERIES = ("closest", "any")
@@ -174,6 +179,13 @@ def packeted(spec: KernelSpec, width: int) -> KernelSpec:
     g * width .. g * width + width - 1; shaders/common/bvh.h)."""
     return dataclasses.replace(spec, uniforms=spec.uniforms + (PACKET_UNIFORM,),
                                defines=spec.defines + (("BVH_PACKET", str(int(width))),))
+
+
+def ordered(spec: KernelSpec) -> KernelSpec:
+    """The variant of a traversal kernel whose work item g traces ray order_ids[g] (the same
+    KERNEL_<name>, the same walk; ORDERED_RAYS, shaders/common/trace.h; backends/ray_order.py)."""
+    return dataclasses.replace(spec, buffers=spec.buffers + (ORDER_BUFFER,),
+                               defines=spec.defines + (("ORDERED_RAYS", "1"),))
 
 
 def sliced(spec: KernelSpec) -> KernelSpec:
