@@ -230,6 +230,8 @@ def trace_order(built: Built, rays, width: int, budget: int | None) -> tuple[str
     warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per structure and ray
     set (Built.ray_orders), so the verified, counted and timed traces run the same order."""
     choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, width)
+    if choice == "measure" and 4 * max(ray_order.ORDER_CELLS, rays.count) > built.device.max_buffer_bytes:
+        choice = "given"  # the sort's buffers would not fit the driver's per-buffer limit
     if choice != "measure":
         return choice, None
     key = (rays.content_hash, rays.query, budget)
