@@ -25,7 +25,9 @@ patch in cell-local coordinates.
 
 Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, once per N;
 (2) masks: per (triangle reference, patch) the bits that decide most (shaft, triangle) pairs with
-one AND (linespace.h: ls_masks_kernel), for a batch of cells at a time (LS_MASK_BYTES);
+one AND (linespace.h: ls_masks_kernel; a cell's masks patch-major, so a shaft reads its two
+patches' masks as two runs), and each reference's triangle in cell-local coordinates
+(ls_local_tris, what the count and fill test), for a batch of cells at a time (LS_MASK_BYTES);
 (3) count: one work item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
 driver's loop budget) decides each candidate, from the masks where they know the answer, else
 by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
@@ -98,6 +100,7 @@ LS_NONEMPTY_BLOCK = 32
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
+LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 float4)
 # Most bytes the count's decisions (one bit per shaft and candidate) may take. The sets are found
 # from them; where those of all cells do not fit, the cells go in batches whose bits do, each
 # batch's sets are found while its bits are there, and the fill tests the pairs again.
@@ -121,25 +124,28 @@ LS_EDGES = KernelSpec(
 _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
 _ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"),
-                 Buf("ls_masks", "uint", "r"))
+                 Buf("ls_masks", "uint", "r"), Buf("ls_local_tris", "float4", "r"))
+# The count and the fill read each reference's triangle in cell-local coordinates from the masks
+# pass (ls_local_tris, 48 bytes per reference of the batch), not through the scene's faces and
+# vertices: TRIANGLE_RECORDS leaves scene.h's indexed loads out, and they bind no scene buffer.
+_PAIR_DEFINES = (("TRIANGLE_RECORDS", "1"),)
 # The count's decisions, one bit per (shaft, candidate), read by the fill (LS_PAIR_BITS).
 LS_PAIR_BITS_COUNT = Buf("ls_pair_bits", "uint", "rw")
 LS_PAIR_BITS_FILL = Buf("ls_pair_bits", "uint", "r")
 LS_MASKS = KernelSpec(
-    "ls_masks", LS_HEADERS, "ls_masks_kernel", SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_masks", "uint", "w"),),
+    "ls_masks", LS_HEADERS, "ls_masks_kernel",
+    SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_masks", "uint", "w"), Buf("ls_local_tris", "float4", "w")),
     LS_BATCH_UNIFORMS)
 # The count pass writes each item's count where its offset will be; the scan turns them into
 # offsets in place (no second array of the offsets' size where every cell is one chunk).
 LS_COUNT = KernelSpec(
     "ls_count", LS_HEADERS, "ls_shaft_kernel",
-    SCENE_BUFFERS + _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"),
-                                                     Buf("ls_stats", "uint", "rw")),
-    LS_BATCH_UNIFORMS)
+    _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
+    LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
-    SCENE_BUFFERS + _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"),
-                                                     Buf("ls_shaft_tris", "uint", "w")),
-    LS_BATCH_UNIFORMS)
+    _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
+    LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 # The fill from the count's pair bits binds only what it reads (llvmpipe: 16 storage buffers per
 # kernel, and both arrays may be split over 4).
 LS_FILL_FROM_BITS = KernelSpec(
@@ -371,7 +377,8 @@ class BuildPlan:
     """How the count and fill passes cover the cells: cell c has chunks(c) = ceil(len / chunk)
     (at least 1) chunks and 15 N^4 chunks(c) work items from item_bases[c]; its references are
     numbered densely from ref_bases[c] (the cull masks); `batches` are cell ranges [c0, c1) whose
-    masks fit LS_MASK_BYTES (at least one cell each)."""
+    masks, and whose cell-local triangles (LOCAL_TRI_BYTES per reference), each fit LS_MASK_BYTES
+    (at least one cell each)."""
     chunk: int
     item_bases: np.ndarray  # cells + 1, int64
     ref_bases: np.ndarray  # cells + 1, int64
@@ -398,7 +405,7 @@ def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
     chunks = np.maximum(1, -(-lengths // chunk))
     item_bases = np.concatenate([[0], np.cumsum(per_cell * chunks)])
     ref_bases = np.concatenate([[0], np.cumsum(lengths)])
-    max_refs = max(1, mask_bytes // (4 * patches))
+    max_refs = max(1, mask_bytes // max(4 * patches, LOCAL_TRI_BYTES))  # masks and local triangles each fit
     if bits_bytes is not None:
         max_refs = max(1, min(max_refs, 8 * bits_bytes // per_cell))
     batches, c0, cells = [], 0, len(lengths)
@@ -540,10 +547,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.extend((item_bases, ref_bases))
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
         masks = temp("ls_masks", 4 * most_refs * patches, zero=False)
+        local_tris = temp("ls_local_tris", LOCAL_TRI_BYTES * most_refs, zero=False)
         bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
-                         ls_pair_bits=bits)
+                         ls_local_tris=local_tris, ls_pair_bits=bits)
         items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
         device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
         item_bufs = items.alloc(device, zero=True)  # entry `items` stays 0: it becomes the total

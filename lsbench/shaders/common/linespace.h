@@ -555,19 +555,19 @@ INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p
     return r.x <= r.y ? 1 : 0;
 }
 
-// Does the triangle meet the shaft? Steps 1-3 above for candidate i of the cell (dense mask row r).
-INLINE int ls_pair_meets(CTX_PARAM uint i, uint r, uint mask_a, uint mask_b, float3 lo, float3 inv, float eps,
+// Does the triangle meet the shaft? Steps 1-3 above for candidate i of the cell, whose masks of the
+// shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks patch-major).
+INLINE int ls_pair_meets(CTX_PARAM uint i, uint ra, uint rb, uint tri_row, float3 lo, float3 inv, float eps,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
                          float4 p5, float4 p6, float4 p7) {
-    uint ma = V(ls_masks)[r + mask_a];
-    uint mb = V(ls_masks)[r + mask_b];
+    uint ma = V(ls_masks)[ra];
+    uint mb = V(ls_masks)[rb];
     if ((ma & mb & LS_CULL_BITS) != 0u) return 0;  // 1. cull
     if (((ma | mb) & LS_MEETS_PATCH) != 0u || ((ma & LS_ABOVE_PLANE) != 0u && (mb & LS_BELOW_PLANE) != 0u) ||
         ((ma & LS_BELOW_PLANE) != 0u && (mb & LS_ABOVE_PLANE) != 0u)) return 1;  // 2. certain from the masks
-    Triangle t = load_grid_triangle(CTX_ARG V(ls_cell_tris)[i]);
-    float3 a = (t.a - lo) * inv;
-    float3 b = (t.b - lo) * inv;
-    float3 c = (t.c - lo) * inv;
+    float3 a = V(ls_local_tris)[tri_row].xyz;  // cell-local, as ls_masks_kernel computed them
+    float3 b = V(ls_local_tris)[tri_row + 1u].xyz;
+    float3 c = V(ls_local_tris)[tri_row + 2u].xyz;
     int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
     int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
     int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);
@@ -639,7 +639,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
     uint n = V(ls_n);
     uint patches = 6u * n * n;
-    uint ref0 = V(ls_ref_bases)[cell] - V(ls_ref_base) + (first_i - begin);  // mask row of first_i
+    // the masks of first_i for the shaft's two patches: the cell's block, patch-major (ls_masks_kernel)
+    uint dense = V(ls_ref_bases)[cell] - V(ls_ref_base) + (first_i - begin);  // first_i's reference in the batch
+    uint block = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * patches + (first_i - begin);
     uint pb = shaft * U32(LS_PLANE_SLOTS);
     float4 axis_a = V(ls_planes)[pb + U32(LS_MAX_PLANES)];  // the patches' centres and mask indices
     float4 axis_b = V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u];
@@ -648,6 +650,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint mask_a = U32(axis_a.w);
     uint mask_b = U32(axis_b.w);
     LsShaft sh = ls_shaft_of_masks(n, mask_a, mask_b);  // the SAT's patch corners (unused otherwise)
+    uint ra = block + mask_a * (end - begin);
+    uint rb = block + mask_b * (end - begin);
     float4 p0 = V(ls_planes)[pb];
     float4 p1 = V(ls_planes)[pb + 1u];
     float4 p2 = V(ls_planes)[pb + 2u];
@@ -665,7 +669,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint word = 0u;
 #endif
     for (uint i = first_i; i < end_i; ++i) {
-        int meets = ls_pair_meets(CTX_ARG i, (ref0 + (i - first_i)) * patches, mask_a, mask_b, lo, inv, eps, n, sh,
+        int meets = ls_pair_meets(CTX_ARG i, ra + (i - first_i), rb + (i - first_i), 3u * (dense + (i - first_i)),
+                                  lo, inv, eps, n, sh,
                                   shaft, ca, cb, p0, p1, p2, p3, p4, p5, p6, p7);
         if (meets != 0) {
 #ifdef KERNEL_ls_fill
@@ -693,7 +698,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_masks
 // ---- Build: the masks of a batch of cells' triangles ---------------------------------------
 // One work item per (reference, face): dense reference ls_ref_base + gid / 6 (numbered by
-// ls_ref_bases) of its cell, writing the N^2 masks face * N^2 + patch of its row of 6 N^2.
+// ls_ref_bases) of its cell, writing the N^2 masks of patches face * N^2 + p (see `row` below).
 // Cull bits: bit 2k is set when on axis k the patch lies below the triangle by LS_CULL_MARGIN
 // (scaled by the axis length), bit 2k + 1 when above. A shaft's hull projects onto an axis as the
 // hull of its two patches' projections, so the hull lies beyond the triangle on axis k iff both
@@ -759,11 +764,18 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
     float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
     float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
-    uint tri = V(ls_cell_tris)[V(ls_cell_ranges)[2u * cell] + (ref - V(ls_ref_bases)[cell])];
+    uint nth = ref - V(ls_ref_bases)[cell];  // the reference's place in its cell
+    uint tri = V(ls_cell_tris)[V(ls_cell_ranges)[2u * cell] + nth];
     Triangle t = load_grid_triangle(CTX_ARG tri);
     float3 a = (t.a - lo) * inv;
     float3 b = (t.b - lo) * inv;
     float3 c = (t.c - lo) * inv;
+    if (face == 0) {  // the pair tests read these, not the scene's indexed vertices (ls_pair_meets)
+        uint tri_row = 3u * (ref - V(ls_ref_base));
+        V(ls_local_tris)[tri_row] = make_float4(a.x, a.y, a.z, 0.0f);
+        V(ls_local_tris)[tri_row + 1u] = make_float4(b.x, b.y, b.z, 0.0f);
+        V(ls_local_tris)[tri_row + 2u] = make_float4(c.x, c.y, c.z, 0.0f);
+    }
     float3 nrm = cross(b - a, c - a);
     float3 ex = make_float3(1.0f, 0.0f, 0.0f), ey = make_float3(0.0f, 1.0f, 0.0f), ez = make_float3(0.0f, 0.0f, 1.0f);
     float3 e0 = b - a, e1 = c - b, e2 = a - c;
@@ -787,7 +799,10 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float2 cut0 = ls_face_uv(ia != ib ? ls_plane_cut(a, b, da, db) : ls_plane_cut(b, c, db, dc), axis);
     float2 cut1 = ls_face_uv((ia != ib && ib != ic) ? ls_plane_cut(b, c, db, dc) : ls_plane_cut(c, a, dc, da), axis);
     float fn = F32(n);
-    uint row = (gid / 6u) * 6u * n2 + U32(face) * n2;
+    // Patch-major within the cell (the cell's K references x 6 N^2 patches, mask of reference k and
+    // patch q at q * K + k): a shaft's pair loop then reads its two patches' masks as two runs.
+    uint refs = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    uint row = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * 6u * n2 + U32(face) * n2 * refs + nth;
     for (uint p = 0u; p < n2; ++p) {
         float pu = F32(I32(p % n)), pv = F32(I32(p / n));
         float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
@@ -809,7 +824,7 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
             if (h.x > nd) bits |= LS_ABOVE_PLANE;
             if (h.y < nd) bits |= LS_BELOW_PLANE;
         }
-        V(ls_masks)[row + p] = bits;
+        V(ls_masks)[row + p * refs] = bits;
     }
 }
 #endif
