@@ -227,8 +227,9 @@ def trace_order(built: Built, rays, width: int, budget: int | None) -> tuple[str
     (an image's tiles, or the set's own order) or "origin-cells" (sorted on the device by their
     origins' cells over the structure's bounds), as ray_order.choose says; where it says
     "measure", the faster of the two in whole timed traces (the sort included): two rounds of one
-    warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per structure and ray
-    set (Built.ray_orders), so the verified, counted and timed traces run the same order."""
+    warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per
+    structure and ray set (Built.ray_orders), so the verified, counted and timed traces run the
+    same order."""
     choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, width)
     if choice == "measure" and 4 * max(ray_order.ORDER_CELLS, rays.count) > built.device.max_buffer_bytes:
         choice = "given"  # the sort's buffers would not fit the driver's per-buffer limit
@@ -344,16 +345,9 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, work, ordered)
     try:
-        for step, items, uniforms in before:
-            d.dispatch(step, items, bufs, uniforms)
-        if budget is None:
-            kernel, items, uniforms = _launch_spec(ordered_spec(spec, before), rays.count, built.uniforms, width)
-            d.dispatch(kernel, items, bufs, uniforms)
-            slices = 1
-        else:
+        if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-            slices = _run_slices(d, sliced(spec), rays.count, bufs, built.uniforms, budget, _dispatch,
-                                 _order_ids(d, bufs, rays.count, before))
+        slices = _launch_trace(built, spec, rays.count, bufs, budget, width, before, _dispatch)
         d.finish()
         order = launch_order(rays)  # an image's tiles; a sorted order stores its hits in place
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
@@ -395,18 +389,9 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
             return d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
         if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-            spec = sliced(spec)
-        else:
-            spec = ordered_spec(spec, before)
 
-        def whole_trace(launch):  # the sort, then the trace (one launch, or slices)
-            for step, items, uniforms in before:
-                launch(d, step, items, bufs, uniforms)
-            if budget is None:
-                launch(d, spec, rays.count, bufs, built.uniforms)
-            else:
-                _run_slices(d, spec, rays.count, bufs, built.uniforms, budget, launch,
-                            _order_ids(d, bufs, rays.count, before))
+        def whole_trace(launch):
+            _launch_trace(built, spec, rays.count, bufs, budget, width, before, launch)
 
         for _ in range(max(warmup, 1)):
             whole_trace(_dispatch)
@@ -430,17 +415,20 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
         _release(d, bufs, _TRACE_BUFFERS)
 
 
-def ordered_spec(spec, sort_steps: list):
-    """The unsliced trace kernel of a sorted order (ORDERED_RAYS), or spec as it is."""
-    return ordered(spec) if sort_steps else spec
-
-
-def _order_ids(d: Device, bufs: dict, n: int, sort_steps: list):
-    """The first slice's ray list of a sorted order: order_ids, read back when the slices start
-    (after the sort's launches), or None (the given order)."""
-    if not sort_steps:
-        return None
-    return lambda: d.read(bufs["order_ids"], np.uint32, n)
+def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, width: int, sort_steps: list,
+                  launch) -> int:
+    """One whole trace through `launch` (_dispatch, or a timed one): the sort's launches, then the
+    trace kernel in one launch (ORDERED_RAYS after a sort) or in slices (the first slice's ray list
+    is the sorted order, read back after the sort); returns the trace's launches."""
+    d = built.device
+    for step, items, uniforms in sort_steps:
+        launch(d, step, items, bufs, uniforms)
+    if budget is None:
+        kernel, items, uniforms = _launch_spec(ordered(spec) if sort_steps else spec, n, built.uniforms, width)
+        launch(d, kernel, items, bufs, uniforms)
+        return 1
+    first = (lambda: d.read(bufs["order_ids"], np.uint32, n)) if sort_steps else None
+    return _run_slices(d, sliced(spec), n, bufs, built.uniforms, budget, launch, first)
 
 
 def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None, line_spaces: bool) -> None:

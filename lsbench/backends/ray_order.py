@@ -49,14 +49,20 @@ PLACE = KernelSpec("ray_order_place", _HEADERS, "ray_order_place_kernel",
                    _UNIFORMS)
 
 
+def _grid(bounds, per_axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """(low corner, cells per unit along each axis) of a grid of per_axis³ cells over `bounds`
+    (lo, hi); a flat axis gets cells of unit extent."""
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    return lo, per_axis / np.where(hi > lo, hi - lo, 1.0)
+
+
 def origin_locality(rays, bounds) -> float:
     """The fraction of consecutive rays (in the set's order) whose origins lie in the same cell of
     a 16³ grid over `bounds` (lo, hi)."""
     if rays.count < 2:
         return 1.0
-    lo, hi = (np.asarray(b, np.float64) for b in bounds)
-    extent = np.where(hi > lo, hi - lo, 1.0)
-    cells = np.clip(((np.asarray(rays.origins, np.float64) - lo) / extent * 16).astype(np.int64), 0, 15)
+    lo, scale = _grid(bounds, 16)
+    cells = np.clip(((np.asarray(rays.origins, np.float64) - lo) * scale).astype(np.int64), 0, 15)
     key = (cells[:, 0] * 16 + cells[:, 1]) * 16 + cells[:, 2]
     return float(np.mean(key[1:] == key[:-1]))
 
@@ -76,9 +82,8 @@ def choose(rays, bounds, image: bool, width: int) -> str:
 
 
 def uniforms(bounds) -> dict:
-    lo, hi = (np.asarray(b, np.float64) for b in bounds)
-    extent = np.where(hi > lo, hi - lo, 1.0)
-    scale = (1 << ORDER_BITS) / extent
+    """The sort's uniforms: its cells over the structure's bounds (ray_order.h: order_cell)."""
+    lo, scale = _grid(bounds, 1 << ORDER_BITS)
     return {"order_origin": (float(lo[0]), float(lo[1]), float(lo[2]), 0.0),
             "order_scale": (float(scale[0]), float(scale[1]), float(scale[2]), 0.0)}
 

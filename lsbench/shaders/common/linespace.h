@@ -555,9 +555,10 @@ INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p
     return r.x <= r.y ? 1 : 0;
 }
 
-// Does the triangle meet the shaft? Steps 1-3 above for candidate i of the cell, whose masks of the
-// shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks patch-major).
-INLINE int ls_pair_meets(CTX_PARAM uint i, uint ra, uint rb, uint tri_row, float3 lo, float3 inv, float eps,
+// Does the triangle meet the shaft? Steps 1-3 above for a candidate of the cell, whose masks of the
+// shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks patch-major)
+// and whose cell-local vertices are ls_local_tris[tri_row ..].
+INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
                          float4 p5, float4 p6, float4 p7) {
     uint ma = V(ls_masks)[ra];
@@ -634,14 +635,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     }
 #else
     float eps = V(ls_eps);
-    float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
-    float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
-    float3 inv = make_float3(1.0f / (hi.x - lo.x), 1.0f / (hi.y - lo.y), 1.0f / (hi.z - lo.z));
     uint n = V(ls_n);
     uint patches = 6u * n * n;
-    // the masks of first_i for the shaft's two patches: the cell's block, patch-major (ls_masks_kernel)
-    uint dense = V(ls_ref_bases)[cell] - V(ls_ref_base) + (first_i - begin);  // first_i's reference in the batch
-    uint block = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * patches + (first_i - begin);
+    uint cell_ref = V(ls_ref_bases)[cell] - V(ls_ref_base);  // the cell's first reference in the batch
     uint pb = shaft * U32(LS_PLANE_SLOTS);
     float4 axis_a = V(ls_planes)[pb + U32(LS_MAX_PLANES)];  // the patches' centres and mask indices
     float4 axis_b = V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u];
@@ -650,8 +646,11 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint mask_a = U32(axis_a.w);
     uint mask_b = U32(axis_b.w);
     LsShaft sh = ls_shaft_of_masks(n, mask_a, mask_b);  // the SAT's patch corners (unused otherwise)
-    uint ra = block + mask_a * (end - begin);
-    uint rb = block + mask_b * (end - begin);
+    // first_i's masks of the shaft's two patches (the cell's block, patch-major: ls_masks_kernel)
+    // and its cell-local vertices
+    uint ra = cell_ref * patches + mask_a * (end - begin) + (first_i - begin);
+    uint rb = cell_ref * patches + mask_b * (end - begin) + (first_i - begin);
+    uint tri_row = 3u * (cell_ref + (first_i - begin));
     float4 p0 = V(ls_planes)[pb];
     float4 p1 = V(ls_planes)[pb + 1u];
     float4 p2 = V(ls_planes)[pb + 2u];
@@ -669,9 +668,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint word = 0u;
 #endif
     for (uint i = first_i; i < end_i; ++i) {
-        int meets = ls_pair_meets(CTX_ARG i, ra + (i - first_i), rb + (i - first_i), 3u * (dense + (i - first_i)),
-                                  lo, inv, eps, n, sh,
-                                  shaft, ca, cb, p0, p1, p2, p3, p4, p5, p6, p7);
+        uint k = i - first_i;
+        int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
+                                  p0, p1, p2, p3, p4, p5, p6, p7);
         if (meets != 0) {
 #ifdef KERNEL_ls_fill
             LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
