@@ -286,7 +286,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         for b in buffers.values():
             device.release(b)
         raise
-    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats), stats)
+    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats, device), stats)
 
 
 def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBuffer, n_tris: int) -> DeviceBuffer:
@@ -304,8 +304,10 @@ def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBu
     return records
 
 
-def traversal(spec: KernelSpec, stats: dict) -> KernelSpec:
+def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
     """The trace kernel with its stack sized to the tree: 3 entries per 4-wide level of the deepest
     path plus one node's 4 (bvh.h: trace_bvh; the treelet restructuring may make a tree deeper than
-    the Karras hierarchy's ~64 levels)."""
-    return spec.with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)
+    the Karras hierarchy's ~64 levels). Where the driver runs work items in SIMD lanes, a node's
+    hit slots are sorted in registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
+    spec = spec.with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)
+    return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

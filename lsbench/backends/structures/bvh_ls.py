@@ -86,7 +86,7 @@ class LineSpaceBVH:
         stats.update(linespace.selection_stats(ls, stats["leaves"], k))
         stats.update({"linespace_leaves": n_cells, "linespace_skipped_leaves": stats["leaves"] - n_cells,
                       "bytes": {name: b.used for name, b in buffers.items()}})
-        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(bvh.traversal(TRACE_BVH_LS, stats)),
+        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(bvh.traversal(TRACE_BVH_LS, stats, device)),
                            stats)
 
 

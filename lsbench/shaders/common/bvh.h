@@ -648,6 +648,56 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
         BVH_PUSH((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_), tn_) }
 
+// A single ray's hit slots onto the stack, nearest on top. BVH_SORT_SLOTS (bvh.py: where the
+// driver runs work items in SIMD lanes, Device.serial_work_items false: llvmpipe, GPUs): the four
+// slots are sorted in registers first (a 5-comparator network on (entry, stack entry), a missed
+// slot BVH_NONE at distance inf) and the hit ones pushed farthest first, because there a private
+// array indexed by each lane's own stack pointer is a gather or a per-lane scatter, and the
+// insertion sort's loop made four of them per shifted entry (llvmpipe, Sponza 256² primary:
+// 0.54 of the device time, incoherent 0.67). Where work items run one at a time (PoCL) the stack is
+// plain memory in cache and the insertion sort stays: the network measured 1.07 there (incoherent).
+// Both orders push the same slots nearest first; slots at equal entry may swap, so a coplanar twin
+// may be found instead at the same distance (a tie for the check, as the packets' note in
+// trace_bvh_kernel says).
+#define BVH_SLOT_KEY(k_, tn_, tf_, ref_, count_, t_, e_)                             \
+    float t_ = INF_F;                                                                \
+    uint e_ = BVH_NONE;                                                              \
+    if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                                      \
+        BVH_PREFETCH_ENTRY(ref_, count_)                                             \
+        t_ = (tn_);                                                                  \
+        e_ = (count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_);               \
+    }
+#define BVH_ORDER(ta_, ea_, tb_, eb_) {                                              \
+        bool swap_ = (tb_) < (ta_);                                                  \
+        float t_ = swap_ ? (tb_) : (ta_);                                            \
+        uint e_ = swap_ ? (eb_) : (ea_);                                             \
+        tb_ = swap_ ? (ta_) : (tb_);                                                 \
+        eb_ = swap_ ? (ea_) : (eb_);                                                 \
+        ta_ = t_;                                                                    \
+        ea_ = e_;                                                                    \
+    }
+#define BVH_PUSH_HIT(e_, t_) if ((e_) != BVH_NONE) { stack[sp] = (e_); stack_t[sp] = (t_); sp += 1; }
+#ifdef BVH_SORT_SLOTS
+#define BVH_SLOTS(tn, tf, refs, counts)                                              \
+    BVH_SLOT_KEY(0u, tn.x, tf.x, refs.x, counts.x, slot_t0, slot_e0)                 \
+    BVH_SLOT_KEY(1u, tn.y, tf.y, refs.y, counts.y, slot_t1, slot_e1)                 \
+    BVH_SLOT_KEY(2u, tn.z, tf.z, refs.z, counts.z, slot_t2, slot_e2)                 \
+    BVH_SLOT_KEY(3u, tn.w, tf.w, refs.w, counts.w, slot_t3, slot_e3)                 \
+    BVH_ORDER(slot_t0, slot_e0, slot_t1, slot_e1)                                    \
+    BVH_ORDER(slot_t2, slot_e2, slot_t3, slot_e3)                                    \
+    BVH_ORDER(slot_t0, slot_e0, slot_t2, slot_e2)                                    \
+    BVH_ORDER(slot_t1, slot_e1, slot_t3, slot_e3)                                    \
+    BVH_ORDER(slot_t1, slot_e1, slot_t2, slot_e2)                                    \
+    BVH_PUSH_HIT(slot_e3, slot_t3) BVH_PUSH_HIT(slot_e2, slot_t2)                    \
+    BVH_PUSH_HIT(slot_e1, slot_t1) BVH_PUSH_HIT(slot_e0, slot_t0)
+#else
+#define BVH_SLOTS(tn, tf, refs, counts)                                              \
+    BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)                                       \
+    BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)                                       \
+    BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)                                       \
+    BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
+#endif
+
 // Stack-based walk, nearest first, written once for the single-ray and the packet traversal, the
 // work injected (as madmann91/bvh's traverse_top_down takes its leaf and node callbacks):
 //   VISIT  a node visit (one `iterations` step): tests the 4 slots' boxes of `node` against
@@ -702,10 +752,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
                         make_float4(best, best, best, best));                          \
         uint4 refs = V(bvh_links)[2u * node];                                          \
         uint4 counts = V(bvh_links)[2u * node + 1u];                                   \
-        BVH_SLOT(0u, tn.x, tf.x, refs.x, counts.x)                                     \
-        BVH_SLOT(1u, tn.y, tf.y, refs.y, counts.y)                                     \
-        BVH_SLOT(2u, tn.z, tf.z, refs.z, counts.z)                                     \
-        BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)                                     \
+        BVH_SLOTS(tn, tf, refs, counts)                                                \
     }
 
 #ifdef QUERY_ANY
