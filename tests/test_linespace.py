@@ -238,11 +238,38 @@ def test_planes_grazing_the_shafts_give_the_reference_lists(device, monkeypatch,
     built.release()
 
 
-@pytest.mark.parametrize("split", ["chunks", "batches"])
+def test_cell_groups_cover_the_batch_inside_one_chunk():
+    """BuildPlan.cell_groups: consecutive groups that cover the batch, at most CELLS_PER_ITEM cells
+    each, every group's candidates inside one chunk, a block halved only where it does not fit; and
+    no groups where a cell needs more than one chunk."""
+    rng = np.random.default_rng(3)
+    lengths = rng.integers(0, 40, 1000)
+    lengths[rng.integers(0, 1000, 30)] = 100  # dense cells: their blocks split
+    ends = np.cumsum(lengths)
+    ranges = np.stack([ends - lengths, ends], axis=1)
+    plan = linespace.plan_build(ranges, 15, 24, chunk=100)
+    for c0, c1 in ((0, 1000), (13, 700), (999, 1000)):
+        groups = plan.cell_groups(c0, c1, 15).astype(np.int64)
+        assert groups[0] == c0 and groups[-1] == c1 and np.all(np.diff(groups) >= 1)
+        sizes = np.diff(groups)
+        sums = plan.ref_bases[groups[1:]] - plan.ref_bases[groups[:-1]]
+        assert sizes.max() <= linespace.CELLS_PER_ITEM and sums.max() <= 100
+        for g0, size in zip(groups[:-2], sizes[:-1]):  # a smaller group: its aligned parent block did not fit
+            size = int(size)  # (the last group may be a block cut short by c1)
+            if size < linespace.CELLS_PER_ITEM:
+                p0 = c0 + (g0 - c0) // (2 * size) * (2 * size)
+                assert plan.ref_bases[min(p0 + 2 * size, c1)] - plan.ref_bases[p0] > 100
+    assert (plan.ref_bases[np.minimum(np.arange(0, 1000, 16) + 16, 1000)]
+            - plan.ref_bases[np.arange(0, 1000, 16)]).max() > 100  # some block did not fit
+    assert linespace.plan_build(ranges, 15, 24, chunk=99).cell_groups(0, 1000, 15) is None
+
+
+@pytest.mark.parametrize("split", ["chunks", "batches", "groups"])
 def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, split):
     """Cells with more candidates than one work item may walk (the driver's loop budget): each
     shaft is counted and filled in chunks, and its list is the one-chunk build's, in list order.
-    Likewise with the cells' masks in several batches and a fill that tests again (no pair bits)."""
+    Likewise with the cells' masks in several batches and a fill that tests again (no pair bits),
+    and with work items walking groups of 4 cells (the last group shorter)."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     whole_lists = read_linespaces(whole)
@@ -251,13 +278,17 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     if split == "chunks":
         per_candidate = linespace.LS_ITERATIONS_PER_CANDIDATE[exact_kind(device)]
         monkeypatch.setitem(linespace.LS_LOOP_BUDGET, device.backend, 3 * per_candidate)
-    else:
+    elif split == "batches":
         monkeypatch.setattr(linespace, "LS_MASK_BYTES", 4 * 24 * 30)  # 30 references of 6 N^2 masks
         monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
+    else:
+        monkeypatch.setattr(linespace, "CELLS_PER_ITEM", 4)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     st = built.stats
     if split == "chunks":
         assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > 2 * st["shafts"], st
+    elif split == "groups":
+        assert st["ls_work_items"] == st["shafts"] and st["linespace_cells"] > 4, st
     else:
         assert st["ls_cell_batches"] > 3 and not st["ls_pair_bits"], st
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)

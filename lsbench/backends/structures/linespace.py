@@ -76,7 +76,7 @@ LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "ui
 LS_BATCH_UNIFORMS = LS_UNIFORMS + (Uniform("ls_chunk", "uint"), Uniform("ls_item_base", "uint"),
                                    Uniform("ls_ref_base", "uint"), Uniform("ls_cell_first", "uint"),
                                    Uniform("ls_cell_end", "uint"), Uniform("ls_bits_base", "uint"),
-                                   Uniform("ls_one_chunk", "uint"))
+                                   Uniform("ls_grouped", "uint"))
 LS_MAX_PLANES = 8  # must match shaders/common/linespace.h
 LS_PLANE_SLOTS = 10  # per shaft in ls_planes: the facet planes, then the axis' two ends (linespace.h)
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
@@ -95,6 +95,9 @@ LS_MAX_CHUNKS = 4
 # inside the budget. PoCL has no such limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
 LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 8 + 28 + 16}
+# Most cells one count or fill work item walks for its shaft where every cell is one chunk
+# (BuildPlan.cell_groups; linespace.h: ls_shaft_kernel): the shaft's set-up paid once for them.
+CELLS_PER_ITEM = 16
 # Shafts counted per atomic in ls_set_len where work items run one after the other (linespace.h).
 LS_NONEMPTY_BLOCK = 32
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
@@ -123,8 +126,10 @@ LS_EDGES = KernelSpec(
     (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w")), LS_UNIFORMS)
 _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
-_ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"),
+_ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"),
                  Buf("ls_masks", "uint", "r"), Buf("ls_local_tris", "float4", "r"))
+# The count and the fill read no cell boxes (the masks pass made everything cell-local).
+_PAIR_CELL_BUFFERS = tuple(b for b in _CELL_BUFFERS if b.name != "ls_cell_boxes")
 # The count and the fill read each reference's triangle in cell-local coordinates from the masks
 # pass (ls_local_tris, 48 bytes per reference of the batch), not through the scene's faces and
 # vertices: TRIANGLE_RECORDS leaves scene.h's indexed loads out, and they bind no scene buffer.
@@ -140,18 +145,18 @@ LS_MASKS = KernelSpec(
 # offsets in place (no second array of the offsets' size where every cell is one chunk).
 LS_COUNT = KernelSpec(
     "ls_count", LS_HEADERS, "ls_shaft_kernel",
-    _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
+    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
     LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
-    _CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
+    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
     LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 # The fill from the count's pair bits binds only what it reads (llvmpipe: 16 storage buffers per
 # kernel, and both arrays may be split over 4).
 LS_FILL_FROM_BITS = KernelSpec(
     "ls_fill", LS_HEADERS_NO_SCENE, "ls_shaft_kernel",
     (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"),
-     Buf("ls_item_bases", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
+     Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
      Buf("ls_shaft_tris", "uint", "w")),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
 
@@ -392,9 +397,33 @@ class BuildPlan:
         return int(self.ref_bases[c1] - self.ref_bases[c0])
 
     def one_chunk(self, c0: int, c1: int, per_cell: int) -> bool:
-        """Every cell of [c0, c1) is one chunk: a work item's cell is then found by a division
+        """Every cell of [c0, c1) is one chunk: a work item's cells are then found by a division
         instead of a search over the cells (linespace.h: ls_shaft_kernel)."""
         return int(self.item_bases[c1] - self.item_bases[c0]) == per_cell * (c1 - c0)
+
+    def cell_groups(self, c0: int, c1: int, per_cell: int) -> np.ndarray | None:
+        """Where every cell of [c0, c1) is one chunk, the groups of consecutive cells that one
+        count or fill work item walks for its shaft (linespace.h: ls_shaft_kernel, ls_cell_groups):
+        each group's first cell, then c1. A group is an aligned block of CELLS_PER_ITEM cells
+        whose candidates together fit one chunk, so that a work item's loops stay inside the
+        driver's budget as one chunk's do; a block that does not fit is halved, down to single
+        cells. None where a cell has more than one chunk (a work item is then one chunk)."""
+        if not self.one_chunk(c0, c1, per_cell):
+            return None
+        cut = np.zeros(c1 - c0 + 1, bool)
+        cut[[0, -1]] = True
+        open_cells = np.ones(c1 - c0, bool)  # not yet in a group
+        size = CELLS_PER_ITEM
+        while True:
+            starts = np.arange(c0, c1, size)
+            ends = np.minimum(starts + size, c1)
+            fits = open_cells[starts - c0] & ((self.ref_bases[ends] - self.ref_bases[starts] <= self.chunk) | (size == 1))
+            cut[starts[fits] - c0] = True
+            cut[ends[fits] - c0] = True
+            open_cells &= ~np.repeat(fits, size)[: c1 - c0]
+            if size == 1:
+                return (c0 + np.flatnonzero(cut)).astype(np.uint32)
+            size //= 2
 
 
 def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
@@ -572,7 +601,24 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
                         ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
-                        ls_bits_base=bits_base, ls_one_chunk=int(plan.one_chunk(c0, c1, per_cell)))
+                        ls_bits_base=bits_base, ls_grouped=0)
+
+        no_groups = temp("ls_cell_groups", 4)
+
+        def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict) -> None:
+            """One count or fill dispatch over the batch [c0, c1): a work item per shaft of each
+            group of cells (BuildPlan.cell_groups), or per shaft and chunk of one cell."""
+            groups = plan.cell_groups(c0, c1, per_cell)
+            if groups is None:
+                device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]),
+                                dict(bufs, ls_cell_groups=no_groups), uniforms)
+                return
+            group_buf = device.upload("ls_cell_groups", groups)
+            try:
+                device.dispatch(spec, per_cell * (len(groups) - 1), dict(bufs, ls_cell_groups=group_buf),
+                                dict(uniforms, ls_grouped=1))
+            finally:
+                device.release(group_buf)
 
         def find_sets(c0: int, c1: int, bits_base: int) -> None:
             for g0 in range(c0, c1, group_cells):
@@ -591,8 +637,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
             if not all_bits:
                 zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
-            device.dispatch(count, int(plan.item_bases[c1] - plan.item_bases[c0]),
-                            dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
+            shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
             if not all_bits:  # this batch's sets, while its bits are there
                 find_sets(c0, c1, bits_base)
         if all_bits:
@@ -646,7 +691,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
                 device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
-            device.dispatch(fill, int(plan.item_bases[c1] - plan.item_bases[c0]), fill_bufs, bu)
+            shaft_pass(fill, c0, c1, fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "

@@ -601,43 +601,37 @@ INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
 // cells, or of one batch where they do not all fit), the sets are found from them (ls_hash_kernel
 // below) and the fill only reads them. Either fill writes only each set's first shaft: the other
 // shafts' items hold LS_SKIP.
+//
+// Where every cell of the batch is one chunk (ls_grouped = 1), a work item takes one shaft of a
+// group of consecutive cells (gid / shafts: the group, [ls_cell_groups[g], ls_cell_groups[g + 1]);
+// gid % shafts: the shaft) and walks them in turn, so that the shaft's set-up (its 10 plane slots,
+// the division) is paid once per group; neighbouring lanes take neighbouring shafts of the same
+// cells, so their cell loops run in step. The host makes the groups (linespace.py:
+// BuildPlan.cell_groups): at most 16 cells whose candidates together fit one chunk. Otherwise
+// (ls_grouped = 0) a work item is one chunk of one cell, found by a search over the cells.
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
-    uint item = gid + V(ls_item_base);
-    uint cell, shaft, chunk;
-    if (V(ls_one_chunk) != 0u) {  // every cell of the batch in one chunk (PoCL): no search, no division by chunks
-        cell = V(ls_cell_first) + gid / shafts;
+    uint grouped = V(ls_grouped);
+    uint cell_first, cell_end, shaft, chunk;
+    if (grouped != 0u) {
+        uint group = gid / shafts;
+        cell_first = V(ls_cell_groups)[group];
+        cell_end = V(ls_cell_groups)[group + 1u];
         shaft = gid % shafts;
         chunk = 0u;
     } else {
-        cell = ls_item_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), item);
-        uint item0 = V(ls_item_bases)[cell];
-        uint chunks = (V(ls_item_bases)[cell + 1u] - item0) / shafts;
+        uint item = gid + V(ls_item_base);
+        cell_first = ls_item_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), item);
+        cell_end = cell_first + 1u;
+        uint item0 = V(ls_item_bases)[cell_first];
+        uint chunks = (V(ls_item_bases)[cell_first + 1u] - item0) / shafts;
         shaft = (item - item0) / chunks;
         chunk = (item - item0) % chunks;
     }
-    uint begin = V(ls_cell_ranges)[2u * cell];
-    uint end = V(ls_cell_ranges)[2u * cell + 1u];
-    uint first_i = begin + chunk * V(ls_chunk);
-    uint end_i = end - first_i > V(ls_chunk) ? first_i + V(ls_chunk) : end;
-#ifdef LS_PAIR_BITS
-    uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
-#endif
-#if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
-    uint first = LS_ITEM(item);  // where the item's part of its set's list goes (ls_dest_kernel)
-    if (first == LS_SKIP) return;
-    uint count = 0u;
-    for (uint i = first_i; i < end_i; ++i, ++bit) {
-        if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
-            LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
-            count += 1u;
-        }
-    }
-#else
+#if !(defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS))
     float eps = V(ls_eps);
     uint n = V(ls_n);
     uint patches = 6u * n * n;
-    uint cell_ref = V(ls_ref_bases)[cell] - V(ls_ref_base);  // the cell's first reference in the batch
     uint pb = shaft * U32(LS_PLANE_SLOTS);
     float4 axis_a = V(ls_planes)[pb + U32(LS_MAX_PLANES)];  // the patches' centres and mask indices
     float4 axis_b = V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u];
@@ -646,11 +640,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint mask_a = U32(axis_a.w);
     uint mask_b = U32(axis_b.w);
     LsShaft sh = ls_shaft_of_masks(n, mask_a, mask_b);  // the SAT's patch corners (unused otherwise)
-    // first_i's masks of the shaft's two patches (the cell's block, patch-major: ls_masks_kernel)
-    // and its cell-local vertices
-    uint ra = cell_ref * patches + mask_a * (end - begin) + (first_i - begin);
-    uint rb = cell_ref * patches + mask_b * (end - begin) + (first_i - begin);
-    uint tri_row = 3u * (cell_ref + (first_i - begin));
     float4 p0 = V(ls_planes)[pb];
     float4 p1 = V(ls_planes)[pb + 1u];
     float4 p2 = V(ls_planes)[pb + 2u];
@@ -659,36 +648,66 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p5 = V(ls_planes)[pb + 5u];
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
-#ifdef KERNEL_ls_fill
-    uint first = LS_ITEM(item);
-    if (first == LS_SKIP) return;
 #endif
-    uint count = 0u;
+    for (uint cell = cell_first; cell < cell_end; ++cell) {
+        uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
+        uint begin = V(ls_cell_ranges)[2u * cell];
+        uint end = V(ls_cell_ranges)[2u * cell + 1u];
+        uint first_i = begin + chunk * V(ls_chunk);
+        uint end_i = end - first_i > V(ls_chunk) ? first_i + V(ls_chunk) : end;
 #ifdef LS_PAIR_BITS
-    uint word = 0u;
+        uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
 #endif
-    for (uint i = first_i; i < end_i; ++i) {
-        uint k = i - first_i;
-        int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
-                                  p0, p1, p2, p3, p4, p5, p6, p7);
-        if (meets != 0) {
+#if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
+        uint first = LS_ITEM(item);  // where the item's part of its set's list goes (ls_dest_kernel)
+        if (first == LS_SKIP) continue;
+        uint count = 0u;
+        for (uint i = first_i; i < end_i; ++i, ++bit) {
+            if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
+                LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+                count += 1u;
+            }
+        }
+#else
+        uint cell_ref = V(ls_ref_bases)[cell] - V(ls_ref_base);  // the cell's first reference in the batch
+        // first_i's masks of the shaft's two patches (the cell's block, patch-major: ls_masks_kernel)
+        // and its cell-local vertices
+        uint ra = cell_ref * patches + mask_a * (end - begin) + (first_i - begin);
+        uint rb = cell_ref * patches + mask_b * (end - begin) + (first_i - begin);
+        uint tri_row = 3u * (cell_ref + (first_i - begin));
 #ifdef KERNEL_ls_fill
-            LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+        uint first = LS_ITEM(item);
+        if (first == LS_SKIP) continue;
 #endif
-            count += 1u;
-        }
+        uint count = 0u;
 #ifdef LS_PAIR_BITS
-        if (meets != 0) word |= 1u << (bit & 31u);
-        if ((bit & 31u) == 31u || i + 1u == end_i) {  // word full, or the chunk's last: neighbours share it
-            if (word != 0u) ATOMIC_OR(V(ls_pair_bits)[bit >> 5u], word);
-            word = 0u;
-        }
-        bit += 1u;
+        uint word = 0u;
 #endif
-    }
+        for (uint i = first_i; i < end_i; ++i) {
+            uint k = i - first_i;
+            int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
+                                      p0, p1, p2, p3, p4, p5, p6, p7);
+            if (meets != 0) {
+#ifdef KERNEL_ls_fill
+                LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+#endif
+                count += 1u;
+            }
+#ifdef LS_PAIR_BITS
+            if (meets != 0) word |= 1u << (bit & 31u);
+            if ((bit & 31u) == 31u || i + 1u == end_i) {  // word full, or the chunk's last: neighbours share it
+                if (word != 0u) ATOMIC_OR(V(ls_pair_bits)[bit >> 5u], word);
+                word = 0u;
+            }
+            bit += 1u;
+#endif
+        }
 #endif
 #ifndef KERNEL_ls_fill
-    LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
+        LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
+#endif
+    }
+#ifndef KERNEL_ls_fill
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
 #endif
 }
