@@ -43,7 +43,10 @@ item at a time; the float4 slab test is their only SIMD). So on such a device co
 packets of 8 per work item (bvh.h BVH_PACKET, backends.packet_width; docs/profiles.md, section 8):
 0.56 of the single-ray device time on Sponza 512² primary rays, 0.88-1.01x Embree in the speed
 test; incoherent rays stay single (packets were 1.5x slower there): 0.45x on Sponza, 0.69-0.94x on
-BMW.
+BMW. Where the driver runs work items in SIMD lanes (llvmpipe, GPUs) a node's hit slots are sorted
+in registers before they are pushed (traversal below, bvh.h BVH_SORT_SLOTS): llvmpipe's stack
+writes are per-lane scatters; Sponza 256² 0.54 (primary) and 0.67 (incoherent) of the device time,
+bvh glsl 0.36 -> 0.61-0.64 Mrays/s on primary rays (docs/profiles.md, section 10).
 
 Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
 (32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
