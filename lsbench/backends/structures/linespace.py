@@ -28,8 +28,9 @@ Build: (1) the shaft volumes (convex hull of the two patches) as facet planes, o
 one AND (linespace.h: ls_masks_kernel; a cell's masks patch-major, so a shaft reads its two
 patches' masks as two runs), and each reference's triangle in cell-local coordinates
 (ls_local_tris, what the count and fill test), for a batch of cells at a time (LS_MASK_BYTES);
-(3) count: one work item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
-driver's loop budget) decides each candidate, from the masks where they know the answer, else
+(3) count: one item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
+driver's loop budget), taken by a work item each, or where every cell of a batch is one chunk, a
+work item per shaft of a group of up to CELLS_PER_ITEM cells (BuildPlan.cell_groups), decides each candidate, from the masks where they know the answer, else
 by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
 item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash

@@ -503,7 +503,7 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 }
 #endif
 
-// ---- Build: count pass (ls_count) and fill pass (ls_fill), one work item per (shaft, chunk) ----
+// ---- Build: count pass (ls_count) and fill pass (ls_fill), per (shaft, chunk) of each cell ------
 // Cells: ls_cell_boxes (float4 lo, hi per cell, grid space), ls_cell_ranges (uint begin, end per
 // cell into ls_cell_tris). Cell c has k_c chunks of at most ls_chunk candidates (the driver's loop
 // budget, linespace.py: candidate_chunk) and 15 N^4 k_c work items from ls_item_bases[c], shaft-
