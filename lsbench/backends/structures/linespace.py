@@ -605,11 +605,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                         ls_bits_base=bits_base, ls_grouped=0)
 
         no_groups = temp("ls_cell_groups", 4)
+        cell_groups = {(c0, c1): plan.cell_groups(c0, c1, per_cell) for c0, c1 in plan.batches}  # count and fill
 
         def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict) -> None:
             """One count or fill dispatch over the batch [c0, c1): a work item per shaft of each
             group of cells (BuildPlan.cell_groups), or per shaft and chunk of one cell."""
-            groups = plan.cell_groups(c0, c1, per_cell)
+            groups = cell_groups[(c0, c1)]
             if groups is None:
                 device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]),
                                 dict(bufs, ls_cell_groups=no_groups), uniforms)

@@ -643,10 +643,12 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             PREFETCH(&V(bvh_links)[2u * (ref_)]);                             \
         } else BVH_PREFETCH_LEAF(ref_, count_)                                \
     }
+// The stack entry of slot k_ of `node`: its child node, or the leaf by its cell 4 * node + slot.
+#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_))
 #define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
     if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                              \
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
-        BVH_PUSH((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_), tn_) }
+        BVH_PUSH(BVH_ENTRY(k_, ref_, count_), tn_) }
 
 // A single ray's hit slots onto the stack, nearest on top. BVH_SORT_SLOTS (bvh.py: where the
 // driver runs work items in SIMD lanes, Device.serial_work_items false: llvmpipe, GPUs): the four
@@ -665,7 +667,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                                      \
         BVH_PREFETCH_ENTRY(ref_, count_)                                             \
         t_ = (tn_);                                                                  \
-        e_ = (count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_);               \
+        e_ = BVH_ENTRY(k_, ref_, count_);                                            \
     }
 #define BVH_ORDER(ta_, ea_, tb_, eb_) {                                              \
         bool swap_ = (tb_) < (ta_);                                                  \
@@ -898,7 +900,7 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         if (any(hit)) {                                                                         \
             float entry = HREDUCE(min, select((floatP)(INF_F), tn, hit));                       \
             BVH_PREFETCH_ENTRY(refs.c_, counts.c_)                                              \
-            BVH_PUSH(counts.c_ > 0u ? (BVH_LEAF | (4u * node + (k_))) : refs.c_, entry)         \
+            BVH_PUSH(BVH_ENTRY(k_, refs.c_, counts.c_), entry)                                  \
         }                                                                                       \
     }
 #ifdef COUNT_WORK
