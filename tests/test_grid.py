@@ -60,6 +60,37 @@ def test_voxel_lists_equal_reference(device, scene_name, resolution):
     built.release()
 
 
+@pytest.mark.parametrize("cells", [None, 0, 8, "default"])
+def test_glsl_voxelizer_split_equals_reference(cells):
+    """GLSL voxelizes through the raster pipeline (None: every triangle, as on GPU drivers), or on
+    llvmpipe the triangles whose bounds hold at most compute_voxel_cells voxels through the compute
+    kernel and the others through the raster pipeline, listed by the compute pass (0: all of them
+    listed). Every split gives the reference's voxel lists."""
+    device = backends.get_device("glsl")
+    scene = load_scene("atrium")
+    resolution = (64, 32, 48)
+    kept = device.compute_voxel_cells
+    try:
+        if cells != "default":
+            device.compute_voxel_cells = cells
+        built = backends.build(device, "grid", scene, BuildParams(resolution=resolution))
+        offsets, tris = voxel_lists(built)
+        g = built.geometry
+        if cells == 8:  # both paths take triangles at this split
+            corners = (scene.vertices[scene.faces] - g.origin) / g.voxel_size
+            span = np.floor(corners.max(1) + 1e-3) - np.floor(corners.min(1) - 1e-3) + 1
+            bounds = np.prod(np.clip(span, 1, None), axis=1)
+            assert (bounds <= 4).any() and (bounds > 16).any()
+        missing, extra = reference.compare_to_reference(
+            offsets, tris, scene.vertices, scene.faces, g.origin, g.voxel_size, g.resolution,
+            eps=BOX_EPS, delta=reference.suggested_delta(g.resolution))
+        assert len(missing) == 0 and len(extra) == 0, (len(missing), len(extra))
+        assert built.stats["references"] == len(tris)
+        built.release()
+    finally:
+        device.compute_voxel_cells = kept
+
+
 def _agreement(device, scene, structure, resolution, rays, **params):
     built = backends.build(device, structure, scene, BuildParams(resolution=resolution, **params))
     hits = backends.trace(built, rays)

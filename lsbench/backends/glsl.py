@@ -2,6 +2,7 @@
 standalone EGL context, `#version 450` so the same sources run on Mesa llvmpipe and NVIDIA."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
                      start_failure_hint)
-from .kernels import SHADER_ROOT, KernelSpec, kernel_defines, numbered, read_common
+from .kernels import SHADER_ROOT, Buf, KernelSpec, kernel_defines, numbered, read_common
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # Loop iterations per ray in one traversal launch on llvmpipe (Device.loop_budget): its limit of
@@ -23,6 +24,13 @@ MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # 4000 / 2000 (13-98 launches): the first launch ends every ray at B instead of waiting for a
 # group's longest, and the long rays then share SIMD groups. 4000 keeps the launches few.
 LLVMPIPE_LOOP_BUDGET = 4000
+# llvmpipe's raster voxelizer costs ~0.6 us of the two threads per triangle (its geometry shader),
+# its compute voxelizer ~0.05 us (BMW, 792,746 triangles at 134 x 40 x 148: count pass 0.40-0.55
+# against 0.04-0.12 s), but the compute kernel's loops over a triangle's bounds meet the loop
+# budget (65535 iterations, every loop of an invocation, shared by a SIMD group of up to 16
+# lanes). Bounds of at most 1024 voxels take at most 3 x 1024 loop iterations (the z, y and x
+# loops), 16 lanes of them 49,152: within it. The raster pipeline takes the larger ones.
+LLVMPIPE_COMPUTE_VOXEL_CELLS = 1024
 HOST_CLOCK = "host clock around glFinish"
 SCAN_BLOCK = 256  # invocations per work group in the prefix-sum kernels (shaders/glsl/scan.comp)
 SCAN_CHUNK = 16  # consecutive items each invocation scans serially
@@ -83,6 +91,9 @@ class GLSLDevice(Device):
         self._raster_targets: dict = {}
         self._max_ssbo = int(self.ctx.info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"])
         self._time_query = None  # one GL_TIME_ELAPSED query object, reused by every timed launch
+        # The most voxels a triangle's bounds may hold for the compute voxelizer to take it
+        # (voxelize); None: the raster pipeline takes every triangle.
+        self.compute_voxel_cells = LLVMPIPE_COMPUTE_VOXEL_CELLS if self.is_llvmpipe else None
 
     # --- information -----------------------------------------------------------------------
     def info(self) -> dict:
@@ -319,10 +330,24 @@ class GLSLDevice(Device):
         return int(np.frombuffer(buf.handle.read(size=4, offset=4 * int(index)), np.uint32)[0])
 
     # --- raster voxelization ---------------------------------------------------------------
+    def _split_voxelizer(self, spec: KernelSpec) -> KernelSpec:
+        """spec as the compute kernel that leaves the triangles of large bounds to the raster
+        pipeline, listed in raster_tris (grid.h: VOXELIZE_MAX_CELLS); the raster program of this
+        spec draws those."""
+        return dataclasses.replace(
+            spec, buffers=spec.buffers + (Buf("raster_tris", "uint", "rw"),),
+            defines=spec.defines + (("VOXELIZE_MAX_CELLS", str(int(self.compute_voxel_cells))),))
+
     def compile_voxelizer(self, spec: KernelSpec):
         """Vertex + geometry + fragment program for the conservative voxelizer of Delgado Krämer 2019, 3.4:
         one point per triangle, the geometry shader projects along the dominant axis and emits
-        the dilated footprint, each fragment tests its column's depth neighbours."""
+        the dilated footprint, each fragment tests its column's depth neighbours. Where the compute
+        kernel takes the small triangles (compute_voxel_cells), it and the raster program of the
+        rest are compiled too."""
+        if self.compute_voxel_cells is not None and not any(k == "VOXELIZE_MAX_CELLS" for k, _ in spec.defines):
+            split = self._split_voxelizer(spec)
+            self.compile(split)
+            self.compile_voxelizer(split)
         prog = self._programs.get(("raster",) + spec.key)
         if prog is None:
             head = "#version 450\n" + _prelude() + kernel_defines(spec) + declarations(spec) \
@@ -339,6 +364,24 @@ class GLSLDevice(Device):
         return prog
 
     def voxelize(self, spec, n_tris, buffers, uniforms, resolution):
+        """The conservative voxelization of n_tris triangles (grid.h). Through the raster pipeline,
+        except where compute_voxel_cells is set (llvmpipe): there the compute kernel takes the
+        triangles whose bounds hold at most that many voxels, and the raster pipeline the others."""
+        if self.compute_voxel_cells is None:
+            self._raster(spec, n_tris, buffers, uniforms, resolution)
+            return
+        split = self._split_voxelizer(spec)
+        left = self.alloc("raster_tris", 4 * (n_tris + 1))
+        try:
+            buffers = dict(buffers, raster_tris=left)
+            self.dispatch(split, n_tris, buffers, uniforms)
+            n_left = int(self.read(left, np.uint32, 1)[0])
+            if n_left:
+                self._raster(split, n_left, buffers, uniforms, resolution)
+        finally:
+            self.release(left)
+
+    def _raster(self, spec, n_tris, buffers, uniforms, resolution):
         """Draw n_tris points through the raster voxelizer into a viewport of R x R pixels, R the
         largest grid side (one pixel = one voxel column of the projection axis)."""
         viewport = max(int(r) for r in resolution)

@@ -23,7 +23,8 @@ INLINE int overlaps_voxel(Triangle t, int3 cell, float eps) {
     return tri_box_overlap(centre, make_float3(h, h, h), t.a, t.b, t.c);
 }
 
-// Compute-kernel voxelizer (OpenCL): one work item per triangle walks its clamped bounds.
+// Compute-kernel voxelizer: one work item per triangle walks its clamped bounds (OpenCL; on
+// llvmpipe the triangles of small bounds, see VOXELIZE_MAX_CELLS).
 INLINE void voxelize_triangle(CTX_PARAM uint tri) {
     Triangle t = load_grid_triangle(CTX_ARG tri);
     float eps = V(box_eps);
@@ -33,6 +34,18 @@ INLINE void voxelize_triangle(CTX_PARAM uint tri) {
     int x0 = max(I32(floor(lo.x)), 0), x1 = min(I32(floor(hi.x)), r.x - 1);
     int y0 = max(I32(floor(lo.y)), 0), y1 = min(I32(floor(hi.y)), r.y - 1);
     int z0 = max(I32(floor(lo.z)), 0), z1 = min(I32(floor(hi.z)), r.z - 1);
+#ifdef VOXELIZE_MAX_CELLS
+    // A driver that ends an invocation's loops silently after a budget (llvmpipe: 65535, shared
+    // by the lanes of a SIMD group) cannot walk large bounds here: such a triangle is listed in
+    // raster_tris (its count in entry 0) for the raster voxelizer, which walks one column per
+    // fragment (voxelize_column). Both passes split the triangles alike, so the fill writes
+    // exactly what the count counted.
+    if (z1 >= z0 && y1 >= y0 && x1 >= x0
+        && (z1 - z0 + 1) * (y1 - y0 + 1) * (x1 - x0 + 1) > VOXELIZE_MAX_CELLS) {
+        V(raster_tris)[1u + ATOMIC_ADD(V(raster_tris)[0], 1u)] = tri;
+        return;
+    }
+#endif
     for (int z = z0; z <= z1; ++z)
         for (int y = y0; y <= y1; ++y)
             for (int x = x0; x <= x1; ++x) {

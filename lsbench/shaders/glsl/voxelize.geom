@@ -11,7 +11,11 @@ flat out int v_axis;
 uniform float viewport_size;
 
 void main() {
+#ifdef VOXELIZE_MAX_CELLS
+    uint tri = raster_tris[1u + uint(gl_PrimitiveIDIn)];  // the triangles the compute pass left (grid.h)
+#else
     uint tri = uint(gl_PrimitiveIDIn);
+#endif
     Triangle t = load_triangle(tri);
     vec3 a = to_grid(t.a), b = to_grid(t.b), c = to_grid(t.c);
     vec3 n = abs(cross(b - a, c - a));
