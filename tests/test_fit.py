@@ -462,6 +462,38 @@ def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tm
     assert "auto/best" in table and "cornell  grid" in table
 
 
+def test_fit_check_pairs_rerun_both_settings_alternated(tmp_path, capsys):
+    """`lsbench fit --check DIR --pairs K` rebuilds a cell's auto setting and its best swept one
+    from their records (scene, rays, camera) and traces them alternately K times: the row gets the
+    median ratio of the pairs between its quartiles; a row of one setting is not rerun; --pairs
+    without --check is refused."""
+    import dataclasses
+
+    from lsbench.cli import main
+    from lsbench.model.check import check_rows, check_table, pair_rows
+    from lsbench.results.store import read_run
+
+    path = tmp_path / "pairs.toml"
+    path.write_text('name = "t"\n[run]\nwidth = 16\nheight = 16\nrepeats = 1\nembree_timing = false\n'
+                    '[[cases]]\nscenes = ["cornell"]\nstructures = ["grid"]\nbackends = ["opencl"]\n'
+                    'resolutions = [4, 8]\ncamera = { eye = [0, 0, 3], target = [0, 0, 0], fov = 50 }\n')
+    out = tmp_path / "run"
+    assert main(["run", str(path), "--out", str(out)]) == 0
+    _, records = read_run(out)
+    coarse, fine = sorted(records, key=lambda r: r["resolution_x"])
+    as_auto = dict(coarse, key=coarse["key"].replace("|r4|", "|rauto|"), auto={"choose_seconds": 0.1})
+    (row,) = check_rows([fine, as_auto])
+    assert row.auto_setting == "4" and row.best_setting == "8" and not row.same_setting
+    same = dataclasses.replace(row, best_record=coarse, best_setting="4")
+    pair_rows([row, same], 3, log=lambda _: None)
+    assert row.paired.pairs == 3 and 0 < row.paired.low <= row.paired.ratio <= row.paired.high
+    assert same.paired is None
+    assert "paired auto/best" in check_table([row])[0]
+    capsys.readouterr()
+    assert main(["fit", "--pairs", "2"]) == 2
+    assert "--pairs: only with --check" in capsys.readouterr().err
+
+
 def test_fit_check_shows_x_embree_beside_rays_per_second():
     """The best swept case is the fastest in rays/s; where every case timed Embree, x Embree and
     its auto/best ratio stand beside it (a busier machine during one case shows in it); the

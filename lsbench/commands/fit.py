@@ -14,7 +14,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 
-from lsbench.commands.common import checked_text, parse_size, say
+from lsbench.commands.common import UsageError, checked_text, parse_size, say
 from lsbench.inputs.checks import writable_folder
 from lsbench.inputs.scenario import RUN_RULES
 
@@ -59,6 +59,10 @@ def setup_arguments(sub) -> None:
                    help="calibrate nothing: print the fit check of a run of scenarios/fit-check.toml or "
                         "fit-thesis.toml (each auto case beside the best swept setting under the same budget, "
                         "lsbench/model/check.py)")
+    p.add_argument("--pairs", type=RUN_RULES["repeats"].flag, metavar="K",
+                   help="with --check: rebuild each cell's auto setting and best swept setting (where they "
+                        "differ) on this machine and trace them alternately K times, and add the median "
+                        "auto/best ratio of the pairs with its quartiles")
     p.set_defaults(func=run)
 
 
@@ -129,7 +133,9 @@ def run(args) -> int:
     from lsbench.model.constants import STEPS, save_constants
 
     if args.check:
-        return print_check(args.check)
+        return print_check(args.check, args.pairs or 0)
+    if args.pairs:
+        raise UsageError("--pairs: only with --check RUN_DIR")
     width, height = parse_size(args.size)
     out = []
     for backend in args.backends:
@@ -147,10 +153,10 @@ def run(args) -> int:
     return 0
 
 
-def print_check(run_dir: str) -> int:
-    """The fit-check table of a run folder; exit 1 when it holds no auto case."""
-    from lsbench.commands.common import UsageError
-    from lsbench.model.check import check_rows, check_table
+def print_check(run_dir: str, pairs: int = 0) -> int:
+    """The fit-check table of a run folder (with `pairs`: each cell's two settings rerun
+    alternated, model/check.py pair_rows); exit 1 when it holds no auto case."""
+    from lsbench.model.check import check_rows, check_table, pair_rows
     from lsbench.results.store import read_run
 
     try:
@@ -161,6 +167,8 @@ def print_check(run_dir: str) -> int:
     if not rows:
         say(f"{run_dir}: no auto case (run scenarios/fit-check.toml or fit-thesis.toml into it)")
         return 1
+    if pairs:
+        pair_rows(rows, pairs, log=say)
     for line in check_table(rows):
         say(line)
     return 0

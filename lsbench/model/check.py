@@ -11,7 +11,8 @@ some of it, but on llvmpipe Embree's own rate also swings with what the driver's
 0.134x Embree), so neither alone decides."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import statistics
+from dataclasses import dataclass, field
 
 
 @dataclass
@@ -32,6 +33,9 @@ class CheckRow:
     swept: int
     auto_x_embree: float | None = None  # rays/s over Embree's in the same worker (None: not timed)
     best_x_embree: float | None = None
+    auto_record: dict | None = field(default=None, repr=False)  # what pair_rows rebuilds
+    best_record: dict | None = field(default=None, repr=False)
+    paired: "Paired | None" = None  # the two settings rerun alternated (pair_rows)
 
     @property
     def choose_share(self) -> float | None:
@@ -58,6 +62,16 @@ class CheckRow:
         if self.auto_x_embree is None or not self.best_x_embree:
             return None
         return self.auto_x_embree / self.best_x_embree
+
+
+@dataclass(frozen=True)
+class Paired:
+    """Auto's rays/s over the best swept setting's, both rebuilt in one process and their traces
+    alternated: the median and quartiles of the per-pair ratios (best's device time over auto's)."""
+    ratio: float
+    low: float
+    high: float
+    pairs: int
 
 
 def x_embree(rec: dict) -> float | None:
@@ -102,8 +116,70 @@ def check_rows(records: list[dict]) -> list[CheckRow]:
             best["rays_per_second"] if best else None, best["memory_bytes"] / 2**20 if best else None,
             (r.get("auto") or {}).get("choose_seconds"),
             sum(o.get("wall_seconds") or 0.0 for o in others), len(others),
-            x_embree(r) if auto_ok and by_embree else None, x_embree(best) if best and by_embree else None))
+            x_embree(r) if auto_ok and by_embree else None, x_embree(best) if best and by_embree else None,
+            r if auto_ok else None, best))
     return rows
+
+
+def _build_params(rec: dict):
+    from lsbench.backends import BuildParams
+
+    return BuildParams(resolution=(rec["resolution_x"], rec["resolution_y"], rec["resolution_z"]),
+                       ls_n=rec.get("ls_n") or 0, ls_min_candidates=rec.get("ls_min_candidates") or 0,
+                       leaf_size=rec.get("leaf_size") or 0)
+
+
+def _case_inputs(rec: dict):
+    """The record's scene and rays, made again (the records' scene_hash and rays_hash say they are
+    the same)."""
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scene import Camera
+    from lsbench.inputs.scenes import load_scene
+
+    source = rec["scene_source"]
+    scene = load_scene(source.removeprefix("builtin:"))
+    cam = rec.get("camera")
+    camera = Camera(tuple(cam["eye"]), tuple(cam["target"]), tuple(cam["up"]), cam["fov"]) if cam else None
+    return scene, make_rays(rec["rays"], scene, rec["width"], rec["height"], camera, rec.get("ray_params") or {})
+
+
+def pair_rows(rows: list[CheckRow], pairs: int, log=print) -> None:
+    """Sets `paired` on every row whose auto case chose another setting than the best swept one
+    (both ok): on this machine's device of the row's backend, both settings are built once and
+    traced alternately `pairs` times (auto first in odd pairs, best first in even ones), so both
+    see the same load. One run of each setting, minutes apart, swings by up to 1.55x on llvmpipe
+    (docs/fit.md); the paired median resolves a few percent."""
+    from lsbench import backends
+
+    todo = [r for r in rows if r.auto_record and r.best_record and not r.same_setting]
+    inputs: dict = {}
+    for i, row in enumerate(todo, 1):
+        a, b = row.auto_record, row.best_record
+        if a.get("scene_hash") != b.get("scene_hash") or a.get("rays_hash") != b.get("rays_hash"):
+            raise ValueError(f"{row.scene} {row.structure} {row.backend}: the auto and best swept cases traced "
+                             "different scenes or rays (scene_hash / rays_hash differ)")
+        key = (a["scene_source"], a["rays"], a["width"], a["height"], str(a.get("camera")), str(a.get("ray_params")))
+        if key not in inputs:
+            inputs.clear()  # one scene's rays at a time
+            inputs[key] = _case_inputs(a)
+        scene, rays = inputs[key]
+        device = backends.get_device(row.backend)
+        log(f"[{i}/{len(todo)}] {row.scene} {row.structure} {row.backend}: {row.auto_setting} against "
+            f"{row.best_setting}, {pairs} alternated pairs")
+        built = [backends.build(device, row.structure, scene, _build_params(rec)) for rec in (a, b)]
+        try:
+            for x in built:
+                backends.trace(x, rays)  # warm-up (and the sorted order's first launch)
+            ratios = []
+            for k in range(pairs):
+                order = (0, 1) if k % 2 == 0 else (1, 0)
+                seconds = {j: backends.time_trace(built[j], rays, warmup=0, repeats=1).seconds[0] for j in order}
+                ratios.append(seconds[1] / seconds[0])
+        finally:
+            for x in built:
+                x.release()
+        q = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else [ratios[0]] * 3
+        row.paired = Paired(statistics.median(ratios), q[0], q[2], pairs)
 
 
 def check_table(rows: list[CheckRow]) -> list[str]:
@@ -123,4 +199,8 @@ def check_table(rows: list[CheckRow]) -> list[str]:
              num(r.ratio_x_embree, ".2f"), num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}",
              "-" if r.choose_share is None else f"{100 * r.choose_share:.1f} %")
             for r in rows]
-    return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17, 18})
+    if any(r.paired for r in rows):
+        header += ("paired auto/best", "quartiles")
+        body = [b + ((f"{r.paired.ratio:.2f}", f"{r.paired.low:.2f}-{r.paired.high:.2f}") if r.paired else ("-", "-"))
+                for b, r in zip(body, rows)]
+    return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17, 18, 19, 20})
