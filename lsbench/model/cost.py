@@ -163,7 +163,8 @@ def draw(sample: RaySample, counts: VoxelCounts) -> Drawn:
         picked = np.searchsorted(np.cumsum(q), (np.arange(take) + rng.random(take)) / take, side="right")
         groups, times = np.unique(np.minimum(picked, len(starts) - 1), return_counts=True)
         ends = np.minimum(starts[groups] + width, n)
-        rows = np.concatenate([np.arange(a, b) for a, b in zip(starts[groups], ends)])
+        lane = np.arange(width)
+        rows = (starts[groups][:, None] + lane)[lane < (ends - starts[groups])[:, None]]  # each group's rows, in order
         weights = np.repeat(times / q[groups], ends - starts[groups])
     out = Drawn(sample.origins[rows], sample.directions[rows], np.full(len(rows), sample.tmin), sample.t_end[rows],
                 weights, width)
