@@ -465,8 +465,8 @@ def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tm
 def test_fit_check_pairs_rerun_both_settings_alternated(tmp_path, capsys):
     """`lsbench fit --check DIR --pairs K` rebuilds a cell's auto setting and its best swept one
     from their records (scene, rays, camera) and traces them alternately K times: the row gets the
-    median ratio of the pairs between its quartiles; a row of one setting is not rerun; --pairs
-    without --check is refused."""
+    median ratio of the pairs between its quartiles; a row of one setting is not rerun, nor one
+    whose rays are no longer the run's (it says so); --pairs without --check is refused."""
     import dataclasses
 
     from lsbench.cli import main
@@ -485,10 +485,15 @@ def test_fit_check_pairs_rerun_both_settings_alternated(tmp_path, capsys):
     (row,) = check_rows([fine, as_auto])
     assert row.auto_setting == "4" and row.best_setting == "8" and not row.same_setting
     same = dataclasses.replace(row, best_record=coarse, best_setting="4")
-    pair_rows([row, same], 3, log=lambda _: None)
+    # rays that are no longer the run's (another seed) are not rerun: the row says why, the others run
+    moved = dataclasses.replace(row, auto_record=dict(as_auto, rays_hash="0" * 16),
+                                best_record=dict(fine, rays_hash="0" * 16))
+    pair_rows([moved, row, same], 3, log=lambda _: None)
     assert row.paired.pairs == 3 and 0 < row.paired.low <= row.paired.ratio <= row.paired.high
-    assert same.paired is None
-    assert "paired auto/best" in check_table([row])[0]
+    assert same.paired is None and not same.not_paired
+    assert moved.paired is None and "rays_hash differ from the run's" in moved.not_paired
+    table = check_table([row, moved])
+    assert "paired auto/best" in table[0] and "not paired" in table[3]
     capsys.readouterr()
     assert main(["fit", "--pairs", "2"]) == 2
     assert "--pairs: only with --check" in capsys.readouterr().err

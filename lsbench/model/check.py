@@ -36,6 +36,7 @@ class CheckRow:
     auto_record: dict | None = field(default=None, repr=False)  # what pair_rows rebuilds
     best_record: dict | None = field(default=None, repr=False)
     paired: "Paired | None" = None  # the two settings rerun alternated (pair_rows)
+    not_paired: str = ""  # why pair_rows could not rerun them
 
     @property
     def choose_share(self) -> float | None:
@@ -130,17 +131,22 @@ def _build_params(rec: dict):
 
 
 def _case_inputs(rec: dict):
-    """The record's scene and rays, made again (the records' scene_hash and rays_hash say they are
-    the same)."""
+    """The record's scene and rays, made again."""
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scene import Camera
     from lsbench.inputs.scenes import load_scene
 
-    source = rec["scene_source"]
-    scene = load_scene(source.removeprefix("builtin:"))
+    scene = load_scene(rec["scene_source"].removeprefix("builtin:"))
     cam = rec.get("camera")
     camera = Camera(tuple(cam["eye"]), tuple(cam["target"]), tuple(cam["up"]), cam["fov"]) if cam else None
     return scene, make_rays(rec["rays"], scene, rec["width"], rec["height"], camera, rec.get("ray_params") or {})
+
+
+def _inputs_changed(rec: dict, scene, rays) -> str:
+    """Why `scene` and `rays` are not what the record traced (its scene_hash, rays_hash), else ""."""
+    changed = [name for name, now in (("scene_hash", scene.content_hash), ("rays_hash", rays.content_hash))
+               if rec.get(name) != now]
+    return f"{rec['scene_source']}: {' and '.join(changed)} differ from the run's" if changed else ""
 
 
 def pair_rows(rows: list[CheckRow], pairs: int, log=print) -> None:
@@ -148,38 +154,50 @@ def pair_rows(rows: list[CheckRow], pairs: int, log=print) -> None:
     (both ok): on this machine's device of the row's backend, both settings are built once and
     traced alternately `pairs` times (auto first in odd pairs, best first in even ones), so both
     see the same load. One run of each setting, minutes apart, swings by up to 1.55x on llvmpipe
-    (docs/fit.md); the paired median resolves a few percent."""
+    (docs/fit.md); the paired median resolves a few percent. A row whose scene or rays are no longer
+    what the run traced, or whose rebuild fails, gets `not_paired` (the reason) instead."""
     from lsbench import backends
 
     todo = [r for r in rows if r.auto_record and r.best_record and not r.same_setting]
     inputs: dict = {}
     for i, row in enumerate(todo, 1):
         a, b = row.auto_record, row.best_record
-        if a.get("scene_hash") != b.get("scene_hash") or a.get("rays_hash") != b.get("rays_hash"):
-            raise ValueError(f"{row.scene} {row.structure} {row.backend}: the auto and best swept cases traced "
-                             "different scenes or rays (scene_hash / rays_hash differ)")
-        key = (a["scene_source"], a["rays"], a["width"], a["height"], str(a.get("camera")), str(a.get("ray_params")))
-        if key not in inputs:
-            inputs.clear()  # one scene's rays at a time
-            inputs[key] = _case_inputs(a)
-        scene, rays = inputs[key]
-        device = backends.get_device(row.backend)
         log(f"[{i}/{len(todo)}] {row.scene} {row.structure} {row.backend}: {row.auto_setting} against "
             f"{row.best_setting}, {pairs} alternated pairs")
-        built = [backends.build(device, row.structure, scene, _build_params(rec)) for rec in (a, b)]
+        key = (a["scene_source"], a["rays"], a["width"], a["height"], str(a.get("camera")), str(a.get("ray_params")))
         try:
-            for x in built:
-                backends.trace(x, rays)  # warm-up (and the sorted order's first launch)
-            ratios = []
-            for k in range(pairs):
-                order = (0, 1) if k % 2 == 0 else (1, 0)
-                seconds = {j: backends.time_trace(built[j], rays, warmup=0, repeats=1).seconds[0] for j in order}
-                ratios.append(seconds[1] / seconds[0])
-        finally:
-            for x in built:
-                x.release()
-        q = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else [ratios[0]] * 3
-        row.paired = Paired(statistics.median(ratios), q[0], q[2], pairs)
+            if key not in inputs:
+                inputs.clear()  # one scene's rays at a time
+                inputs[key] = _case_inputs(a)
+            scene, rays = inputs[key]
+            changed = _inputs_changed(a, scene, rays) or _inputs_changed(b, scene, rays)
+            if changed:
+                raise ValueError(changed)
+            row.paired = _alternate(backends.get_device(row.backend), row.structure, scene, rays, a, b, pairs)
+        except Exception as exc:  # noqa: BLE001 - a row that cannot be rerun says why; the others still run
+            row.not_paired = f"{type(exc).__name__}: {exc}".splitlines()[0]
+            log(f"  not paired: {row.not_paired}")
+
+
+def _alternate(device, structure: str, scene, rays, auto: dict, best: dict, pairs: int) -> Paired:
+    from lsbench import backends
+
+    built = []
+    try:
+        for rec in (auto, best):
+            built.append(backends.build(device, structure, scene, _build_params(rec)))
+        for x in built:
+            backends.trace(x, rays)  # warm-up (and the sorted order's first launch)
+        ratios = []
+        for k in range(pairs):
+            order = (0, 1) if k % 2 == 0 else (1, 0)
+            seconds = {j: backends.time_trace(built[j], rays, warmup=0, repeats=1).seconds[0] for j in order}
+            ratios.append(seconds[1] / seconds[0])
+    finally:
+        for x in built:
+            x.release()
+    q = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else [ratios[0]] * 3
+    return Paired(statistics.median(ratios), q[0], q[2], pairs)
 
 
 def check_table(rows: list[CheckRow]) -> list[str]:
@@ -199,8 +217,9 @@ def check_table(rows: list[CheckRow]) -> list[str]:
              num(r.ratio_x_embree, ".2f"), num(r.choose_seconds, ".1f"), f"{r.sweep_seconds:.0f}",
              "-" if r.choose_share is None else f"{100 * r.choose_share:.1f} %")
             for r in rows]
-    if any(r.paired for r in rows):
+    if any(r.paired or r.not_paired for r in rows):
         header += ("paired auto/best", "quartiles")
-        body = [b + ((f"{r.paired.ratio:.2f}", f"{r.paired.low:.2f}-{r.paired.high:.2f}") if r.paired else ("-", "-"))
+        body = [b + ((f"{r.paired.ratio:.2f}", f"{r.paired.low:.2f}-{r.paired.high:.2f}") if r.paired
+                     else ("not paired", r.not_paired) if r.not_paired else ("-", "-"))
                 for b, r in zip(body, rows)]
     return text_table(header, body, right={3, 5, 6, 7, 8, 10, 11, 12, 13, 15, 16, 17, 18, 19, 20})
