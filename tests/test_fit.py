@@ -436,6 +436,24 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     assert f"{files[0]} unreadable (JSONDecodeError" in rec["auto"]["constants"]
 
 
+def test_fit_rounds_fit_every_round_together(tmp_path):
+    """`lsbench fit --rounds 2` runs every calibration case twice, one round after the other, and
+    stores both rounds' cases, fitted together."""
+    import json
+
+    from lsbench.cli import main
+    from lsbench.commands import fit
+
+    assert main(["fit", "--backends", "opencl", "--scenes", "cornell", "--size", "8x8", "--repeats", "1",
+                 "--rounds", "2", "--out-dir", str(tmp_path)]) == 0
+    (path,) = tmp_path.glob("opencl-*.json")
+    cases = json.loads(path.read_text())["cases"]
+    per_round = len(fit.CALIBRATION) + len(fit.LAUNCH_CALIBRATION)
+    assert [c["round"] for c in cases] == [1] * per_round + [2] * per_round
+    assert [c["structure"] for c in cases[:per_round]] == [c["structure"] for c in cases[per_round:]]
+    assert all("fitted_seconds_per_ray" in c for c in cases)
+
+
 def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tmp_path, capsys):
     """A tiny fit-check run (cornell, grid swept 4^3 and 64^3 with a budget that 64^3 passes, and
     auto): `lsbench fit --check` names the auto setting, the best swept setting that fit (4^3:

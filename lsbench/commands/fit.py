@@ -52,6 +52,10 @@ def setup_arguments(sub) -> None:
     p.add_argument("--size", type=checked_text(parse_size), default=DEFAULT_SIZE,
                    help=f"image size WxH (camera rays; default {DEFAULT_SIZE})")
     p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=3, help="timed launches per case")
+    p.add_argument("--rounds", type=RUN_RULES["repeats"].flag, default=1, metavar="R",
+                   help="run the calibration cases R times over, one round after the other, and fit on all "
+                        "of them (one round's constants moved by tens of percent between runs on a 2-core "
+                        "machine: the defaults pool four, docs/fit.md)")
     p.add_argument("--out-dir", type=writable_folder, metavar="DIR",
                    help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")
     p.add_argument("--json", action="store_true", help="print the stored constants as JSON")
@@ -66,9 +70,10 @@ def setup_arguments(sub) -> None:
     p.set_defaults(func=run)
 
 
-def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=say) -> dict:
-    """Run the calibration cases on `backend`; returns the file's contents (model/constants.py)
-    with the fitted constants, each case, and the fit's relative rms residual."""
+def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=say, rounds: int = 1) -> dict:
+    """Run the calibration cases on `backend`, all of them `rounds` times over, one round after the
+    other, and fit the constants on every round's cases together; returns the file's contents
+    (model/constants.py) with the fitted constants, each case, and the fit's relative rms residual."""
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenario import Case, RunSettings
     from lsbench.inputs.scenes import load_scene
@@ -82,7 +87,8 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     runs = [(s, (width, height), c) for s in scenes for c in CALIBRATION] + [(s, big, c) for s in scenes
                                                                               for c in LAUNCH_CALIBRATION]
     loaded = (None, None)
-    for scene_name, (w, h), (structure, resolution, n, k) in runs:
+    for round_, (scene_name, (w, h), (structure, resolution, n, k)) in ((r, run) for r in range(1, rounds + 1)
+                                                                       for run in runs):
         if loaded != (scene_name, (w, h)):
             scene, loaded = load_scene(scene_name), (scene_name, (w, h))
             rays = make_rays("primary", scene, w, h)
@@ -99,7 +105,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
                   _issued(work[1], rec.get("simd_efficiency_tests_device")))
         rows.append(design_row(structure, rec["ray_count"], *issued, work[2]))
         seconds.append(per_ray)
-        cases.append({"scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
+        cases.append({"round": round_, "scene": scene_name, "structure": structure, "resolution": resolution, "ls_n": n,
                       "ls_min_candidates": k, "rays": rec["ray_count"],
                       "iterations_per_ray": work[0], "candidate_tests_per_ray": work[1],
                       "linespace_lookups_per_ray": work[2], "issued_iterations_per_ray": issued[0],
@@ -140,8 +146,8 @@ def run(args) -> int:
     out = []
     for backend in args.backends:
         say(f"lsbench fit: {backend}, {(len(CALIBRATION) + len(LAUNCH_CALIBRATION)) * len(args.scenes)} "
-            "calibration cases")
-        data = calibrate(backend, args.scenes, width, height, args.repeats)
+            f"calibration cases" + (f", {args.rounds} rounds" if args.rounds > 1 else ""))
+        data = calibrate(backend, args.scenes, width, height, args.repeats, rounds=args.rounds)
         path = save_constants(data, backend, data["device"], Path(args.out_dir) if args.out_dir else None)
         say(f"{backend} ({data['device']}): launch {data['launch'] * 1e3:.2f} ms, ray {data['ray'] * 1e9:.1f} ns, "
             f"step {'/'.join(STEPS)} " + "/".join(f"{data['step'][f] * 1e9:.2f}" for f in STEPS)
