@@ -138,8 +138,10 @@ class Device(abc.ABC):
     def voxelize(self, spec: KernelSpec, n_tris: int, buffers: dict[str, DeviceBuffer],
                  uniforms: dict[str, object], resolution: tuple[int, int, int]) -> None:
         """Conservative voxelization of n_tris triangles into a grid of `resolution` (Delgado Krämer 2019, 3.4):
-        spec's voxelize_column (shaders/common/grid.h) per raster fragment on GLSL, its body once
-        per triangle as a compute kernel on OpenCL. Same voxel -> triangle sets either way."""
+        spec's voxelize_column (shaders/common/grid.h) per raster fragment on GLSL (on llvmpipe
+        only for the triangles of large bounds, the others through its body as a compute kernel),
+        its body once per triangle as a compute kernel on OpenCL. Same voxel -> triangle sets
+        either way."""
 
     @abc.abstractmethod
     def dispatch(self, spec: KernelSpec, n_items: int, buffers: dict[str, DeviceBuffer],

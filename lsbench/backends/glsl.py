@@ -375,7 +375,7 @@ class GLSLDevice(Device):
         try:
             buffers = dict(buffers, raster_tris=left)
             self.dispatch(split, n_tris, buffers, uniforms)
-            n_left = int(self.read(left, np.uint32, 1)[0])
+            n_left = self.read_uint(left, 0)
             if n_left:
                 self._raster(split, n_left, buffers, uniforms, resolution)
         finally:

@@ -12,6 +12,7 @@ keeps each case's measured time beside the fitted one."""
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import json
 
 from lsbench.commands.common import UsageError, checked_text, parse_size, say
@@ -87,8 +88,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
     runs = [(s, (width, height), c) for s in scenes for c in CALIBRATION] + [(s, big, c) for s in scenes
                                                                               for c in LAUNCH_CALIBRATION]
     loaded = (None, None)
-    for round_, (scene_name, (w, h), (structure, resolution, n, k)) in ((r, run) for r in range(1, rounds + 1)
-                                                                       for run in runs):
+    for round_, (scene_name, (w, h), (structure, resolution, n, k)) in itertools.product(range(1, rounds + 1), runs):
         if loaded != (scene_name, (w, h)):
             scene, loaded = load_scene(scene_name), (scene_name, (w, h))
             rays = make_rays("primary", scene, w, h)
