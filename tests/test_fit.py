@@ -181,7 +181,7 @@ def test_crossings_are_the_cells_each_segment_passes_through():
     slab test of every cell of a 7 x 4 x 5 grid, the cells a segment passes through for a length
     are all there, each once, and nothing else (rays from outside and inside, ending inside, axis-
     parallel, from integer corners: there a crossing of two planes at one point may take either
-    cell that touches it). Each crossing's plane is the leaf plane it crossed (0: the entry)."""
+    cell that touches it)."""
     import numpy as np
 
     from lsbench.model.cost import crossings
@@ -196,7 +196,7 @@ def test_crossings_are_the_cells_each_segment_passes_through():
     d[150:200, :2] = 0.0  # along an axis
     o[200:260] = np.floor(o[200:260])  # on cell corners
     t1 = np.where(np.arange(n) % 3 == 0, rng.uniform(0, 3, n), 50.0)  # some end inside the grid
-    rays, x, y, z, plane = crossings(o, d, 0.0, t1, res)
+    rays, x, y, z = crossings(o, d, 0.0, t1, res)
     cells = np.stack([x, y, z], axis=1)
     lo = np.stack(np.meshgrid(*(np.arange(r) for r in res), indexing="ij"), axis=-1).reshape(-1, 3).astype(float)
     for i in range(n):
@@ -214,12 +214,53 @@ def test_crossings_are_the_cells_each_segment_passes_through():
             assert set(got) == through, i
         else:
             assert set(got) <= touching and len(got) >= len(through), i
-        on_plane = plane[rays == i]
-        assert (on_plane == 0).sum() == (len(got) > 0), i
-    # a crossing's plane is a face of its cell on some axis
-    crossed = plane > 0
-    faces = np.stack([cells[crossed], cells[crossed] + 1], axis=2)
-    assert np.all(np.any(faces == plane[crossed, None, None], axis=(1, 2)))
+
+
+@pytest.mark.parametrize("scene_name,resolution", [("spheres", 32), ("cornell", 16), ("atrium", 64)])
+def test_octree_walk_top_down_is_every_level_walked_whole(scene_name, resolution):
+    """cost._octree_walk finds each level's cells by crossing the children of the non-empty cells
+    of the level above. Against each level walked whole (crossings over that level's grid, the
+    rays cut to the box, kept where the parent is non-empty): the same iterations per ray, and the
+    same (ray, leaf) pairs, on a cube, a flat box (spheres) and a stretched interior (atrium),
+    every ray of a 48 x 48 image (rays from outside the box: the default cameras). The origins are
+    moved by a millionth of the scene: cornell's camera sits on a cell edge and its diagonal rays
+    cross two planes at one point at every step, where either walk may take either cell
+    (test_crossings_are_the_cells_each_segment_passes_through)."""
+    import numpy as np
+
+    from lsbench.model.cost import _in_grid, _octree_walk, box_span, crossings, draw, ray_sample
+
+    device = backends.get_device("opencl")
+    scene = load_scene(scene_name)
+    rays, hit_t = _rays_and_truth(scene, 48, 48)
+    geometry = backends.geometry_for("svo", scene, BuildParams(resolution=(resolution,) * 3))
+    bufs = _scene_buffers(device, scene)
+    try:
+        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+    finally:
+        for b in bufs.values():
+            device.release(b)
+    sample = ray_sample(rays, hit_t, size=rays.count)
+    jitter = np.random.default_rng(5).uniform(-1e-6, 1e-6, sample.origins.shape) * np.ptp(scene.vertices, axis=0)
+    drawn = draw(dataclasses.replace(sample, origins=sample.origins + jitter), counts)
+    ray_ids, cells, iterations = _octree_walk(counts, drawn)
+
+    levels = counts.occupancy
+    depth = len(levels) - 1
+    o, d = _in_grid(drawn, geometry)
+    enter, leave, _ = box_span(o, d, drawn.tmin, drawn.t_end, geometry.resolution)
+    expected = np.zeros(len(drawn.t_end), np.int64)
+    for level in range(1, depth + 1):
+        leaves = 2.0 ** (depth - level)
+        shape = levels[level].shape[::-1]  # (x, y, z) cells over the box
+        r, x, y, z = crossings(o / leaves, d / leaves, enter, leave, shape)
+        keep = levels[level - 1][z >> 1, y >> 1, x >> 1]
+        expected += np.bincount(r[keep], minlength=len(expected))
+    rx, ry, _ = geometry.resolution
+    assert np.array_equal(iterations, expected)
+    assert iterations.sum() > len(drawn.t_end)  # the rays do walk the levels
+    leaf_pairs = set(zip(r[keep].tolist(), (x + rx * (y + ry * z))[keep].tolist()))
+    assert set(zip(ray_ids.tolist(), cells.tolist())) == leaf_pairs and len(ray_ids) == len(leaf_pairs)
 
 
 def test_issued_work_is_each_groups_busiest_lane():

@@ -185,16 +185,14 @@ def box_span(o: np.ndarray, d: np.ndarray, t0: np.ndarray, t1: np.ndarray, res):
 
 
 def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
-    """The cells of the grid [0, res] that each ray crosses between t0 and t1 as (ray, x, y, z,
-    plane), int32 arrays: the cell where the ray enters the grid (plane 0), then one cell per grid
-    plane it crosses (plane: that plane's index on its axis, 1 .. R - 1). These are the cells the
-    3D-DDA of Amanatides & Woo (1987) steps through, one per crossing, but found for all crossings at
-    once instead of one step of every ray at a time (a numpy loop of as many steps as the longest
-    ray's, which took most of the choice). The crossing at a plane of one axis puts the ray in the
-    cell of the other two axes that holds the crossing point, clamped to the cells its own span covers;
-    where two planes are crossed at one point either order is taken (the DDA's order there is its
-    rounding's). A plane whose index is a multiple of 2^s is also a plane of the grid 2^s times
-    coarser (an octree's upper levels: _walk)."""
+    """The cells of the grid [0, res] that each ray crosses between t0 and t1 as (ray, x, y, z),
+    int32 arrays: the cell where the ray enters the grid, then one cell per grid plane it crosses.
+    These are the cells the 3D-DDA of Amanatides & Woo (1987) steps through, one per crossing, but
+    found for all crossings at once instead of one step of every ray at a time (a numpy loop of as
+    many steps as the longest ray's, which took most of the choice). The crossing at a plane of one
+    axis puts the ray in the cell of the other two axes that holds the crossing point, clamped to the
+    cells its own span covers; where two planes are crossed at one point either order is taken (the
+    DDA's order there is its rounding's). t0 and t1: scalars or one per ray."""
     resf = np.asarray(res, np.float64)
     enter, leave, inv = box_span(o, d, t0, t1, resf)
     rows = np.flatnonzero(enter <= leave)
@@ -214,10 +212,9 @@ def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
         high.append(f + up)
         count.append((up + down).astype(np.int64))
     totals = [int(n.sum()) for n in count]
-    out = np.empty((5, len(rows) + sum(totals)), np.int32)  # ray, x, y, z, plane: the entries, then each axis'
+    out = np.empty((4, len(rows) + sum(totals)), np.int32)  # ray, x, y, z: the entries, then each axis'
     out[0, : len(rows)] = rows
     out[1:4, : len(rows)] = first
-    out[4, : len(rows)] = 0
     at = len(rows)
     for a in range(3):
         n, total = count[a], totals[a]
@@ -233,11 +230,10 @@ def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
         t = (plane - oc[a][who]) * inv[rows, a][who]
         out[0, part] = rows[who]
         out[1 + a, part] = cell
-        out[4, part] = plane
         for b in range(3):
             if b != a:
                 out[1 + b, part] = np.clip(np.floor(oc[b][who] + dc[b][who] * t), low[b][who], high[b][who])
-    return out[0], out[1], out[2], out[3], out[4]
+    return out[0], out[1], out[2], out[3]
 
 
 def _in_grid(sample: Drawn, geometry: GridGeometry, scale: float = 1.0):
@@ -264,7 +260,7 @@ def _work_per_ray(structure: str, counts: VoxelCounts, drawn: Drawn, k: int,
     """Each drawn ray's iterations, candidate tests and Line Space lookups."""
     info = STRUCTURES[structure]
     n_rays = len(drawn.t_end)
-    ray_ids, cells, octree_iterations = _walk(counts, drawn, info.cubic_power_of_two)
+    ray_ids, cells, iterations = _walk(counts, drawn, info.cubic_power_of_two)
     listed = counts.counts.ravel()[cells].astype(np.float64)
     lookups = np.zeros(n_rays)
     if info.line_space:
@@ -273,7 +269,6 @@ def _work_per_ray(structure: str, counts: VoxelCounts, drawn: Drawn, k: int,
         listed = np.where(with_ls, listed * per_reference, listed)  # a ray's tests in a Line Space cell
         lookups = np.bincount(ray_ids[with_ls], minlength=n_rays).astype(np.float64)
     tests = np.bincount(ray_ids, weights=listed, minlength=n_rays)
-    iterations = octree_iterations if info.cubic_power_of_two else np.bincount(ray_ids, minlength=n_rays)
     return iterations.astype(np.float64), tests, lookups
 
 
@@ -326,39 +321,51 @@ def chord_shafts(o: np.ndarray, d: np.ndarray, cells: np.ndarray, res, n: int) -
 
 
 def _walk(counts: VoxelCounts, sample: Drawn, octree: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The (ray, voxel) pairs of the voxels the drawn rays cross, and for an octree each ray's cells of all levels
-    inside a non-empty parent; once per (counts, drawn), whatever N and K."""
+    """The (ray, voxel) pairs of the voxels the drawn rays cross (an octree: those in a non-empty
+    parent, the only ones its walk enters; the others hold no candidates), and for an octree each
+    ray's cells of all levels inside a non-empty parent; once per (counts, drawn), whatever N and K."""
     key = (sample, octree)
     if key not in counts.walks:
-        o, d = _in_grid(sample, counts.geometry)
-        rx, ry, _ = (int(v) for v in counts.geometry.resolution)
-        ray_ids, x, y, z, plane = crossings(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
-        cells = x + rx * (y + ry * z)
-        iterations = np.zeros(len(sample.t_end), np.int64)
         if octree:
-            # Both walks cover the scene's box only (svo.h, esvo.h), every level from the ray's entry
-            # into it. The box's cells are the cube's leaves from its corner, so the cell of level
-            # depth - s a ray is in is its leaf's coordinates >> s, and it enters a new one exactly
-            # at the leaf planes whose index is a multiple of 2^s: the leaf crossings kept at each
-            # level up are those, and their coordinates shifted.
-            levels = counts.occupancy
-            depth = len(levels) - 1
-            # Each crossing's coarseness: the trailing zeros of its plane's index (the entries: every
-            # level's). Sorted coarsest first, level depth - s takes the crossings of coarseness >= s.
-            lowest_bit = (plane & -plane).astype(np.float64)
-            coarseness = np.where(plane == 0, depth, np.frexp(lowest_bit)[1] - 1).astype(np.int8)
-            order = np.argsort(-coarseness, kind="stable")
-            xs, ys, zs, rays = x[order], y[order], z[order], ray_ids[order]
-            kept = np.bincount(coarseness, minlength=depth + 1)[::-1].cumsum()[::-1]  # kept[s]: coarseness >= s
-            for s in range(depth):
-                n = kept[s]
-                parents = levels[depth - s - 1]  # (z, y, x) over the box: every parent of a box cell is in it
-                py, px = parents.shape[1], parents.shape[2]
-                up = s + 1
-                inside_parent = parents.ravel()[(xs[:n] >> up) + px * ((ys[:n] >> up) + py * (zs[:n] >> up))]
-                iterations += np.bincount(rays[:n][inside_parent], minlength=len(iterations))
-        counts.walks[key] = (ray_ids, cells, iterations)
+            counts.walks[key] = _octree_walk(counts, sample)
+        else:
+            o, d = _in_grid(sample, counts.geometry)
+            rx, ry, _ = (int(v) for v in counts.geometry.resolution)
+            ray_ids, x, y, z = crossings(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+            counts.walks[key] = (ray_ids, x + rx * (y + ry * z), np.bincount(ray_ids, minlength=len(sample.t_end)))
     return counts.walks[key]
+
+
+def _octree_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """An octree's walk, top down: the rays' cells of level l + 1 are the crossings of the 2 x 2 x 2
+    children of each non-empty cell of level l they cross (crossings in the cell's own frame),
+    from the root to the leaves. Both walks cover the scene's box only (svo.h, esvo.h): each ray's
+    segment is cut to the box first, and a child past the box (the box's far cells are cut by it)
+    is touched at most at the box's face, so it is dropped. Each level's crossings in a non-empty
+    parent are that level's iterations. The work is the iterations themselves, not every leaf
+    crossing (measured on spheres esvo 512³, 8192 rays: 446 k cells against 3.4 M leaf crossings,
+    0.13 s against 0.83 s for the leaf-first walk, the same cells and iterations for every ray)."""
+    levels = counts.occupancy  # (z, y, x) booleans per level over the box, root first
+    depth = len(levels) - 1
+    n_rays = len(sample.t_end)
+    o, d = _in_grid(sample, counts.geometry)
+    enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
+    rays = np.flatnonzero(enter <= leave)
+    cell = np.zeros((3, len(rays)), np.int64)  # (x, y, z) of each ray's cell at the level walked: the root
+    iterations = np.zeros(n_rays, np.int64)
+    for level in range(1, depth + 1):
+        keep = levels[level - 1][cell[2], cell[1], cell[0]]
+        rays, cell = rays[keep], cell[:, keep]
+        leaves = 2.0 ** (depth - level)  # leaves per cell edge at this level: exact scaling
+        pair, x, y, z = crossings(o[rays] / leaves - 2 * cell.T, d[rays] / leaves, enter[rays], leave[rays],
+                                  (2, 2, 2))
+        rays, cell = rays[pair], 2 * cell[:, pair] + np.stack([x, y, z])
+        box = levels[level].shape
+        inside = (cell[0] < box[2]) & (cell[1] < box[1]) & (cell[2] < box[0])
+        rays, cell = rays[inside], cell[:, inside]
+        iterations += np.bincount(rays, minlength=n_rays)
+    rx, ry, _ = (int(v) for v in counts.geometry.resolution)
+    return rays, cell[0] + rx * (cell[1] + ry * cell[2]), iterations
 
 
 def seconds_per_ray(structure: str, work: Work, constants, rays: int) -> float:
