@@ -101,6 +101,17 @@ class Device(abc.ABC):
     @abc.abstractmethod
     def fill_zero(self, buf: DeviceBuffer) -> None: ...
 
+    def alloc_readable(self, name: str, nbytes: int) -> DeviceBuffer:
+        """A zeroed buffer that the host reads back whole once the kernels are done (read_readable):
+        the model's count passes. Here a plain `alloc`; a backend whose device works in host memory
+        lends it the host array itself (opencl.py), so reading back copies nothing."""
+        return self.alloc(name, nbytes)
+
+    def read_readable(self, buf: DeviceBuffer, dtype, count: int | None = None) -> np.ndarray:
+        """An alloc_readable buffer's contents after the kernels, a host array of its own (valid
+        after release)."""
+        return self.read(buf, dtype, count)
+
     def write(self, buf: DeviceBuffer, array: np.ndarray, offset: int = 0) -> None:
         """Copy `array` into buf from byte `offset` on (the ray list of a trace slice)."""
         raise NotImplementedError(f"{self.backend}: write")

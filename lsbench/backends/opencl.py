@@ -82,6 +82,7 @@ class OpenCLDevice(Device):
         # Bytes of the live buffers: PoCL hands out buffers past CL_DEVICE_GLOBAL_MEM_SIZE and
         # fails (or swaps) later, so alloc checks the sum itself and names the limit.
         self._live: dict[int, int] = {}
+        self._host_arrays: dict[int, np.ndarray] = {}  # alloc_readable's buffers: their host arrays
 
     def _pick_device(self):
         cl = self.cl
@@ -196,11 +197,48 @@ class OpenCLDevice(Device):
         self.cl.enqueue_copy(self.queue, buf.handle, np.ascontiguousarray(array), dst_offset=int(offset),
                              is_blocking=True)
 
+    def alloc_readable(self, name, nbytes):
+        """The buffer over a zeroed host array (USE_HOST_PTR). PoCL's CPU device then works in that
+        array: read_readable copies nothing, and the pages the kernels never write are never
+        touched (np.zeros maps them on demand). Measured on spheres' 512 x 224 x 512 count pass
+        (235 MB), a fresh process: allocation and read-back 1.2-1.3 s with alloc + read (the fill
+        and the copy each touch every page), 0.001 s this way. A device with memory of its own
+        copies the array in and out as the OpenCL spec says."""
+        cl = self.cl
+        nbytes = max(int(nbytes), 4)
+        self.check_size(name, nbytes)
+        self.check_memory(name, nbytes)
+        host = np.zeros(-(-nbytes // 4), np.uint32)
+        try:
+            handle = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+        except cl.Error as exc:
+            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
+        self._host_arrays[id(handle)] = host
+        return self._track(DeviceBuffer(name, nbytes, handle))
+
+    def read_readable(self, buf, dtype, count=None):
+        host = self._host_arrays.get(id(buf.handle))
+        if host is None:
+            return self.read(buf, dtype, count)
+        dtype = np.dtype(dtype)
+        n = buf.nbytes // dtype.itemsize if count is None else int(count)
+        cl = self.cl
+        # Mapping makes the host array hold the kernels' writes (a copy only where the device has
+        # memory of its own); the map is released before the array is handed out.
+        mapped, _ = cl.enqueue_map_buffer(self.queue, buf.handle, cl.map_flags.READ, 0, (n,), dtype,
+                                          is_blocking=True)
+        view = host.view(dtype)[:n]
+        if mapped.__array_interface__["data"][0] != view.__array_interface__["data"][0]:
+            view[:] = mapped
+        mapped.base.release()
+        return view
+
     def fill_zero(self, buf):
         self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes)
 
     def release(self, buf):
         self._live.pop(id(buf.handle), None)
+        self._host_arrays.pop(id(buf.handle), None)  # read_readable's array lives on with its readers
         buf.handle.release()
 
     # --- device clock ----------------------------------------------------------------------

@@ -71,12 +71,8 @@ class VoxelCounts:
         occ = self.counts > 0
         levels = [occ]
         for _ in range(cube.bit_length() - 1):
-            box = tuple(-(-n // 2) for n in occ.shape)  # the level above: half, rounded up
-            padded = np.zeros(tuple(2 * n for n in box), bool)
-            padded[: occ.shape[0], : occ.shape[1], : occ.shape[2]] = occ
-            occ = padded[0::2] | padded[1::2]  # pairwise per axis: far faster than .any over 3 axes
-            occ = occ[:, 0::2] | occ[:, 1::2]
-            occ = occ[:, :, 0::2] | occ[:, :, 1::2]
+            for axis in range(3):  # pairwise per axis (far faster than .any over 3 axes), no padded copy
+                occ = _pairs_or(occ, axis)
             levels.append(occ)
         return levels[::-1]
 
@@ -85,20 +81,33 @@ class VoxelCounts:
         return [int(np.count_nonzero(level)) for level in self.occupancy]
 
 
+def _pairs_or(occ: np.ndarray, axis: int) -> np.ndarray:
+    """The level above along one axis: cells 2i and 2i + 1 or-ed, a last odd cell on its own (the
+    box's far cell, whose other half is past the box: empty)."""
+    n = occ.shape[axis]
+    half = n // 2
+    take = lambda sl: occ[(slice(None),) * axis + (sl,)]  # noqa: E731
+    out = np.empty(occ.shape[:axis] + (-(-n // 2),) + occ.shape[axis + 1:], bool)
+    np.logical_or(take(slice(0, 2 * half, 2)), take(slice(1, 2 * half, 2)), out=out[(slice(None),) * axis + (slice(0, half),)])
+    if n % 2:
+        out[(slice(None),) * axis + (slice(half, None),)] = take(slice(n - 1, None))
+    return out
+
+
 def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
     """The voxelization's count pass at `geometry` on the device (the same kernel every grid and
     octree build runs first), read back."""
     grid.prepare(device)
-    buf = device.alloc("model_voxel_counts", 4 * geometry.voxel_count)
+    buf = device.alloc_readable("model_voxel_counts", 4 * geometry.voxel_count)
     try:
         device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
                         geometry.uniforms(), geometry.resolution)
         device.finish()
-        counts = device.read(buf, np.uint32, geometry.voxel_count)
+        counts = device.read_readable(buf, np.uint32, geometry.voxel_count)
     finally:
         device.release(buf)
     rx, ry, rz = geometry.resolution
-    return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # Device.read returns a fresh array
+    return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # an array of its own (read_readable)
 
 
 @dataclass
