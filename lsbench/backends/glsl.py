@@ -157,7 +157,9 @@ class GLSLDevice(Device):
     def read(self, buf, dtype, count=None):
         dtype = np.dtype(dtype)
         size = buf.nbytes if count is None else int(count) * dtype.itemsize
-        return np.frombuffer(buf.handle.read(size=size), dtype=dtype).copy()
+        out = np.empty(size // dtype.itemsize, dtype)
+        buf.handle.read_into(out, size=size)  # one copy, not bytes and then an array of them
+        return out
 
     def fill_zero(self, buf):
         buf.handle.clear()
