@@ -368,7 +368,7 @@ def _grid_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.ndarr
     res = tuple(int(v) for v in g.resolution)
     o, d = _in_grid(sample, g)
     enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, res)
-    blocks = counts.counts > 0
+    blocks = counts.counts
     for _ in range(GRID_WALK_BLOCK.bit_length() - 1):
         blocks = halved(blocks)
     b = float(GRID_WALK_BLOCK)
@@ -383,7 +383,7 @@ def _octree_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.nda
     """An octree's walk (_walk), from the root to the leaves: a ray's cells of level l + 1 are the
     children it crosses of its non-empty cells of level l, and they are that level's iterations.
     Both octree walks cover the scene's box only (svo.h, esvo.h), so each ray is cut to the box."""
-    levels = counts.occupancy  # (z, y, x) booleans per level over the box, root first
+    levels = counts.occupancy  # (z, y, x) per level over the box, root first: non-zero where non-empty
     depth = len(levels) - 1
     n_rays = len(sample.t_end)
     o, d = _in_grid(sample, counts.geometry)
