@@ -216,6 +216,29 @@ def test_crossings_are_the_cells_each_segment_passes_through():
             assert set(got) <= touching and len(got) >= len(through), i
 
 
+def test_octant_crossings_are_the_crossings_of_a_two_cell_grid():
+    """cost.octant_crossings (the octree walk's step to a cell's children) finds the same (ray,
+    cell) pairs as cost.crossings over a 2 x 2 x 2 grid: random segments from outside and inside,
+    some axis-parallel, some starting or ending inside."""
+    import numpy as np
+
+    from lsbench.model.cost import crossings, octant_crossings
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    o = rng.uniform(-1, 3, (n, 3))
+    d = rng.normal(size=(n, 3))
+    o[:1000] = rng.uniform(0, 2, (1000, 3))
+    d[1000:2000, 1] = 0.0
+    d[2000:2500, :2] = 0.0
+    t1 = np.where(np.arange(n) % 3 == 0, rng.uniform(0, 3, n), 50.0)
+    t0 = np.where(np.arange(n) % 5 == 0, rng.uniform(0, 1, n), 0.0)
+    generic = set(zip(*(a.tolist() for a in crossings(o, d, t0, t1, (2, 2, 2)))))
+    octant = octant_crossings(o, d, t0, t1)
+    assert len(octant[0]) == len(generic) > n // 4  # most segments miss the small box
+    assert set(zip(*(a.tolist() for a in octant))) == generic
+
+
 @pytest.mark.parametrize("scene_name,structure,resolution", [
     ("spheres", "svo", (32, 32, 32)), ("cornell", "svo", (16, 16, 16)), ("atrium", "svo", (64, 64, 64)),
     ("spheres", "grid", (37, 15, 37)), ("cornell", "grid", (16, 16, 16)), ("atrium", "grid", (61, 27, 30))])

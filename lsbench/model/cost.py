@@ -223,6 +223,35 @@ def crossings(o: np.ndarray, d: np.ndarray, t0, t1, res):
     return out[0], out[1], out[2], out[3]
 
 
+def octant_crossings(o: np.ndarray, d: np.ndarray, t0, t1):
+    """crossings(o, d, t0, t1, (2, 2, 2)), the octree walk's step to a cell's children, without
+    its machinery for many planes: each axis has one inner plane, crossed when the ray's ends are
+    on its two sides, so the cells are the entry cell, then one more per plane crossed in the order
+    of their t, each the last with that axis' bit flipped. A third of the numpy calls, on the
+    octree walk's many small arrays (spheres esvo's choice: 0.26-0.31 s in crossings)."""
+    enter, leave, inv = box_span(o, d, t0, t1, (2.0, 2.0, 2.0))
+    rows = np.flatnonzero(enter <= leave)
+    o, d, inv = o[rows], d[rows], inv[rows]
+    first = np.clip(np.floor(o + d * enter[rows, None]), 0, 1).astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        p = o + d * leave[rows, None]  # where the ray leaves: a plane strictly before it is crossed
+        crossed = np.where(d > 0, (first == 0) & (p > 1), (d < 0) & (first == 1) & (p < 1))
+        t = np.where(crossed, (1.0 - o) * inv, np.inf)
+    order = np.argsort(t, axis=1)
+    each = np.arange(len(rows))
+    cells, kept = [first], [np.ones(len(rows), bool)]
+    for k in range(3):
+        axis = order[:, k]
+        step = crossed[each, axis]  # the k-th crossing, where there is one (the uncrossed sort last)
+        cell = cells[-1].copy()
+        cell[each[step], axis[step]] ^= 1
+        cells.append(cell)
+        kept.append(step)
+    kept = np.stack(kept)
+    cell = np.stack(cells)[kept]
+    return np.broadcast_to(rows, kept.shape)[kept], cell[:, 0], cell[:, 1], cell[:, 2]
+
+
 def _plane_counts(o: np.ndarray, d: np.ndarray, t0, t1, res):
     """The rays that meet the box [0, res] between t0 and t1 (rows), their origins, directions and
     1/d per axis, and per axis the cell each enters in, the lowest and highest cell it reaches and
@@ -406,8 +435,8 @@ def _children(o, d, enter, leave, rays: np.ndarray, cell: np.ndarray, branch: in
     own frame (exact: the scalings are powers of two or one). `box`: the children over the grid's
     box (x, y, z); a child past it (a box's far cells are cut by it) is touched at most at the
     box's face, where the ray was cut (enter, leave: the rays' spans in the box), so it is dropped."""
-    pair, x, y, z = crossings(o[rays] / size - branch * cell.T, d[rays] / size, enter[rays], leave[rays],
-                              (branch,) * 3)
+    cross = octant_crossings if branch == 2 else lambda *a: crossings(*a, (branch,) * 3)
+    pair, x, y, z = cross(o[rays] / size - branch * cell.T, d[rays] / size, enter[rays], leave[rays])
     rays, cell = rays[pair], branch * cell[:, pair] + np.stack([x, y, z])
     inside = (cell[0] < box[0]) & (cell[1] < box[1]) & (cell[2] < box[2])
     return rays[inside], cell[:, inside]
