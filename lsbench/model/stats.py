@@ -93,13 +93,15 @@ def halved(occ: np.ndarray) -> np.ndarray:
 
 def _pairs_or(occ: np.ndarray, axis: int) -> np.ndarray:
     """Cells 2i and 2i + 1 or-ed along one axis, a last odd cell on its own."""
+    def along(sl: slice) -> tuple:  # the index of `sl` on `axis`
+        return (slice(None),) * axis + (sl,)
+
     n = occ.shape[axis]
     half = n // 2
-    take = lambda sl: occ[(slice(None),) * axis + (sl,)]  # noqa: E731
     out = np.empty(occ.shape[:axis] + (-(-n // 2),) + occ.shape[axis + 1:], bool)
-    np.logical_or(take(slice(0, 2 * half, 2)), take(slice(1, 2 * half, 2)), out=out[(slice(None),) * axis + (slice(0, half),)])
+    np.logical_or(occ[along(slice(0, 2 * half, 2))], occ[along(slice(1, 2 * half, 2))], out=out[along(slice(0, half))])
     if n % 2:
-        out[(slice(None),) * axis + (slice(half, None),)] = take(slice(n - 1, None))
+        out[along(slice(half, None))] = occ[along(slice(n - 1, None))]
     return out
 
 
