@@ -202,7 +202,7 @@ class OpenCLDevice(Device):
         array: read_readable copies nothing, and the pages the kernels never write are never
         touched (np.zeros maps them on demand). Measured on spheres' 512 x 224 x 512 count pass
         (235 MB) in a fresh process, where this VM makes every first touch of a page dear:
-        allocation and read-back 1.0-1.3 s with alloc + read (the fill and the copy each touch
+        allocation and read-back 0.81-1.17 s with alloc + read (the fill and the copy each touch
         every page), 0.001 s this way, while the kernel, which now touches the pages it writes
         first, took 0.13-0.47 s against 0.11-0.18 s. A device with memory of its own copies the
         array in and out as the OpenCL spec says."""
