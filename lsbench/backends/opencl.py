@@ -144,18 +144,28 @@ class OpenCLDevice(Device):
         return int(self.device.max_mem_alloc_size)
 
     # --- buffers ---------------------------------------------------------------------------
-    def alloc(self, name, nbytes, zero=True):
-        cl = self.cl
-        nbytes = max(int(nbytes), 4)
+    def _new_buffer(self, name: str, nbytes: int, make) -> DeviceBuffer:
+        """The buffer that make() creates, after the per-buffer and device-memory checks; a driver
+        error becomes a DeviceLimitError naming the buffer (alloc, upload, alloc_readable)."""
         self.check_size(name, nbytes)
         self.check_memory(name, nbytes)
         try:
+            handle = make()
+        except self.cl.Error as exc:
+            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
+        return self._track(DeviceBuffer(name, nbytes, handle))
+
+    def alloc(self, name, nbytes, zero=True):
+        cl = self.cl
+        nbytes = max(int(nbytes), 4)
+
+        def make():
             buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
             if zero:
                 cl.enqueue_fill_buffer(self.queue, buf, np.uint32(0), 0, nbytes)
-        except cl.Error as exc:
-            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
-        return self._track(DeviceBuffer(name, nbytes, buf))
+            return buf
+
+        return self._new_buffer(name, nbytes, make)
 
     @property
     def global_mem_bytes(self) -> int:
@@ -178,13 +188,8 @@ class OpenCLDevice(Device):
         data = np.ascontiguousarray(array)
         if data.nbytes == 0:
             return self.alloc(name, 4)
-        self.check_size(name, data.nbytes)
-        self.check_memory(name, data.nbytes)
-        try:
-            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=data)
-        except cl.Error as exc:
-            raise DeviceLimitError(f"allocating buffer '{name}' of {data.nbytes} bytes failed: {exc}") from exc
-        return self._track(DeviceBuffer(name, data.nbytes, buf))
+        return self._new_buffer(name, data.nbytes, lambda: cl.Buffer(
+            self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=data))
 
     def read(self, buf, dtype, count=None):
         dtype = np.dtype(dtype)
@@ -208,15 +213,16 @@ class OpenCLDevice(Device):
         array in and out as the OpenCL spec says."""
         cl = self.cl
         nbytes = max(int(nbytes), 4)
-        self.check_size(name, nbytes)
-        self.check_memory(name, nbytes)
-        host = np.zeros(-(-nbytes // 4), np.uint32)
-        try:
-            handle = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
-        except cl.Error as exc:
-            raise DeviceLimitError(f"allocating buffer '{name}' of {nbytes} bytes failed: {exc}") from exc
-        self._host_arrays[id(handle)] = host
-        return self._track(DeviceBuffer(name, nbytes, handle))
+        host = None
+
+        def make():  # the host array only once the checks passed
+            nonlocal host
+            host = np.zeros(-(-nbytes // 4), np.uint32)
+            return cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+
+        buf = self._new_buffer(name, nbytes, make)
+        self._host_arrays[id(buf.handle)] = host
+        return buf
 
     def read_readable(self, buf, dtype, count=None):
         host = self._host_arrays.get(id(buf.handle))
