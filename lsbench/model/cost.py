@@ -437,8 +437,8 @@ def _children(o, d, enter, leave, rays: np.ndarray, cell: np.ndarray, branch: in
     own frame (exact: the scalings are powers of two or one). `box`: the children over the grid's
     box (x, y, z); a child past it (a box's far cells are cut by it) is touched at most at the
     box's face, where the ray was cut (enter, leave: the rays' spans in the box), so it is dropped."""
-    cross = octant_crossings if branch == 2 else lambda *a: crossings(*a, (branch,) * 3)
-    pair, x, y, z = cross(o[rays] / size - branch * cell.T, d[rays] / size, enter[rays], leave[rays])
+    local = (o[rays] / size - branch * cell.T, d[rays] / size, enter[rays], leave[rays])
+    pair, x, y, z = octant_crossings(*local) if branch == 2 else crossings(*local, (branch,) * 3)
     rays, cell = rays[pair], branch * cell[:, pair] + np.stack([x, y, z])
     inside = (cell[0] < box[0]) & (cell[1] < box[1]) & (cell[2] < box[2])
     return rays[inside], cell[:, inside]
