@@ -605,6 +605,8 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     g.d = ray.d / scale;
     g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
     g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
+    g.t_base = 0.0f;  // t here is the ray's own (trace.h: GridRay)
+    g.span = span;
     c = ols_leaf_shaft(CTX_ARG c, g, cell, make_int3(0, 0, 0), span);
 #endif
     return test_candidates(CTX_ARG tr, c);

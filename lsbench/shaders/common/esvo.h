@@ -52,16 +52,17 @@ INLINE Trace esvo_suspend(Trace tr, uint parent, uint idx, int scale, float3 pos
 
 INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
-    float3 o = ray.o;
-    float3 d = ray.d;
-    GridRay gr = make_grid_ray(CTX_ARG o, d);  // the box's span, and esvo-ls' Line Space lookup
+    // The ray from its entry into the scene's box (trace.h: make_grid_ray), and esvo-ls' Line
+    // Space lookup; every t below is from gr.t_base.
+    GridRay gr = make_grid_ray(CTX_ARG ray);
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
     // divided by the cube's edge, shifted by one; the direction divided by the edge and
-    // normalized. t' = t * dlen, so every world distance below is t' / dlen.
+    // normalized. t' = t * dlen, so every distance below is t' / dlen. (Grid space divided by
+    // the cube's edge in voxels, a power of two: exact.)
     float res = F32(1 << OCT_DEPTH);  // the cube's edge in voxels
     float inv_edge = V(grid_inv_voxel).x / res;
-    float3 p = (o - V(grid_origin).xyz) * inv_edge + make_float3(1.0f, 1.0f, 1.0f);
-    float3 dn = d * inv_edge;
+    float3 p = gr.o / res + make_float3(1.0f, 1.0f, 1.0f);
+    float3 dn = ray.d * inv_edge;
     float dlen = length(dn);
     float3 dd = dn / dlen;
     // Components too small for the reciprocal become +-2^-23 (LK10: keeps t finite).
@@ -86,9 +87,8 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     float t_max = min(min(tx_coef - tx_bias, ty_coef - ty_bias), tz_coef - tz_bias);
     // The walk covers the scene's box only (octree.h: the cube's cells past grid_res are empty),
     // and the ray's [tmin, tmax); the first child is then the one that holds the point at t_min.
-    float2 span = grid_span(gr, ray, make_float3(F32(V(grid_res).x), F32(V(grid_res).y), F32(V(grid_res).z)));
-    t_min = max(t_min, span.x * dlen);
-    t_max = min(t_max, span.y * dlen);
+    t_min = max(t_min, gr.span.x * dlen);
+    t_max = min(t_max, gr.span.y * dlen);
     float t_end = t_max;  // nothing past the ray's end can be hit: the walk stops there
     if (t_min <= t_max) {
         // Stack entry of scale s (s = leaf scale + 1 .. ESVO_SMAX - 1) at s - leaf_scale - 1:
@@ -152,7 +152,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                         tr = oct_test_leaf(CTX_ARG tr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
                                            make_float2(t_min / dlen, t_exit));
                         if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
-                        if (trace_done(tr, t_exit) != 0) break;
+                        if (trace_done(tr, gr.t_base + t_exit) != 0) break;
                     } else {
                         // PUSH: remember the parent. (LK10 skips the write when the ray leaves
                         // the parent together with this child, so no POP can land there; in

@@ -132,12 +132,11 @@ INLINE Trace grid_suspend(Trace tr, GridStep s, float nx, float ny, float nz) {
 
 INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
-    GridRay g = make_grid_ray(CTX_ARG ray.o, ray.d);
+    GridRay g = make_grid_ray(CTX_ARG ray);  // t below: from g.t_base (trace.h)
     int3 r = V(grid_res).xyz;
-    float2 span = grid_span(g, ray, make_float3(F32(r.x), F32(r.y), F32(r.z)));
-    float t1 = span.y;
-    if (span.x <= t1) {
-        float3 p = g.o + g.d * span.x;
+    float t1 = g.span.y;
+    if (g.span.x <= t1) {
+        float3 p = g.o + g.d * g.span.x;
         GridStep s;
         s.cell = clamp(make_int3(I32(floor(p.x)), I32(floor(p.y)), I32(floor(p.z))),
                        make_int3(0, 0, 0), r - make_int3(1, 1, 1));
@@ -169,7 +168,7 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
             s.axis_out = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
             tr = test_candidates(CTX_ARG tr, grid_voxel(CTX_ARG g, s));
             if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s, nx, ny, nz); break; }
-            if (trace_done(tr, s.t_exit) != 0) break;
+            if (trace_done(tr, g.t_base + s.t_exit) != 0) break;
             if (s.t_exit >= t1) break;
             if (s.axis_out == 0) {
                 s.cell.x += sx; nx += dx;

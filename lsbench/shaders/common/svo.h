@@ -38,16 +38,14 @@ INLINE Trace svo_suspend(Trace tr, int level, int3 cell) {
 
 INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
-    GridRay gr = make_grid_ray(CTX_ARG ray.o, ray.d);
+    GridRay gr = make_grid_ray(CTX_ARG ray);  // t below: from gr.t_base (trace.h)
     float3 og = gr.o;
     float3 dg = gr.d;
     float3 inv = gr.inv;
     int res = 1 << OCT_DEPTH;  // the cube's edge in voxels
     // The walk covers the scene's box only (octree.h: the cube's cells past grid_res are empty).
-    int3 box = V(grid_res).xyz;
-    float2 span = grid_span(gr, ray, make_float3(F32(box.x), F32(box.y), F32(box.z)));
-    float t0 = span.x;
-    float t1 = span.y;
+    float t0 = gr.span.x;
+    float t1 = gr.span.y;
     if (t0 <= t1) {
         uint stack[OCT_DEPTH];
         stack[0] = 0u;  // the root
@@ -85,7 +83,7 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                     // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
                     tr = oct_test_leaf(CTX_ARG tr, gr, child - 1u, cell, make_float2(t_exit, t_exit));
                     if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
-                    if (trace_done(tr, t_exit) != 0) break;
+                    if (trace_done(tr, gr.t_base + t_exit) != 0) break;
                 } else {
                     // Descend (lines 11-18): enter the child octant that holds the entry point.
                     float ex = dg.x == 0.0f ? -INF_F : (F32(cell.x + (sx > 0 ? 0 : 1)) * fs - og.x) * inv.x;

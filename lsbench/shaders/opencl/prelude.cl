@@ -12,6 +12,23 @@
 #define U32(x) ((uint)(x))
 #define I32(x) ((int)(x))
 #define F32(x) ((float)(x))
+// Double precision, used only where float32 cannot place a point, once per ray (common/trace.h:
+// make_grid_ray). A device without cl_khr_fp64 computes that in float, as before: its far-origin
+// rays then carry float32's error there (a walk 0.1 voxels off the line at 1e4 scene diagonals).
+#ifdef cl_khr_fp64
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define F64(x) ((double)(x))
+#define F64_3(v) convert_double3(v)
+#define make_double2(x, y) ((double2)((x), (y)))
+#else
+#define double float
+#define double2 float2
+#define double3 float3
+#define F64(x) ((float)(x))
+#define F64_3(v) (v)
+#define make_double2(x, y) ((float2)((x), (y)))
+#endif
+#define F32_3(v) convert_float3(v)
 // Every shared function inlined: PoCL's LLVM left ray_triangle_wt, test_candidates and the walks as
 // calls that pass the Trace struct by value through the stack, and `perf record` put 40 % of the
 // grid walk's samples and 30 % of the candidate loop's on those struct copies (store-forwarding
