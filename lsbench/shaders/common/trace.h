@@ -252,52 +252,43 @@ INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
 #endif
 }
 
-// The ray in grid space (scene.h), for walks over cells and for Line Space lookups, carried to the
-// scene's box [0, grid_res]: o is the point of the ray's line at t = t_base, the box entry (or tmin
-// where the ray starts inside), and a walk measures t from there: its t is t_base + t in world
-// terms (trace_done takes the world t). span: where [tmin, tmax] lies in the box, from t_base
-// (span.x is 0 up to float rounding; span.x > span.y: the ray misses the box). voxel_t: one voxel
-// edge along the ray's main axis, in t (the most t a chord through one voxel can span along that
-// axis). Unused fields cost nothing: the compiler drops them.
+// The ray in grid space (scene.h), for walks over cells and for Line Space lookups, measured from a
+// point by the scene's box [0, grid_res]: o is the point of the ray's line at t = t_base, the one
+// nearest the box's centre, and a walk measures t from there: its t is t_base + t in world terms
+// (trace_done takes the world t). span: where [tmin, tmax] lies in the box, from t_base
+// (span.x > span.y: the ray misses the box). voxel_t: one voxel edge along the ray's main axis, in
+// t (the most t a chord through one voxel can span along that axis). Unused fields cost nothing:
+// the compiler drops them.
 // Why the move, and why in double: an origin 1e4 scene diagonals away lies millions of voxels
-// from the box, where float32 grid coordinates are 0.1-0.25 voxels apart; a walk whose origin and
-// entry point were computed there walked 0.03-0.1 voxels off the ray's line, past the build's
-// overlap margin (BOX_EPS 1e-3), and missed hits (a built scene 1e4 units from the world origin,
-// rays from 1e4 diagonals: tests/test_far_origins.py). The entry is found in double (preludes:
-// F64; a few operations per ray), so the walk starts on the line to float32 precision of the box's
-// own coordinates, whatever the origin.
+// from the box (2.2e6 at 128³), where float32 grid coordinates are 0.25 voxels apart and t values
+// (1.7e5 for a 17-unit scene) 0.016 apart. The grid walk took its entry cell from such a point and
+// stepped t there by adding one voxel's t (0.13) per step, rounded each time: it drifted off the
+// ray's line, past the build's overlap margin (BOX_EPS 1e-3 voxels), and lost hits
+// (tests/test_far_origins.py: 242 of 1024 rays at 128³). The frame's point is placed in double
+// (preludes: F64; a dozen multiply-adds per ray, no division), exactly on the ray's line for its
+// t_base, which itself need not be exact: so the walk starts on the line to float32 precision of
+// the box's own coordinates, its t values stay as small as the box, whatever the origin, and the
+// box's span is found in float from there.
 STRUCT(GridRay) { float3 o; float3 d; float3 inv; float voxel_t; float t_base; float2 span; };
 
-// Slab of one axis in double: the stretch `span` cut to where the line o + d t has 0 <= x <= hi.
-INLINE double2 grid_slab(double2 span, double o, double d, double hi) {
-    if (d == F64(0.0f)) {  // parallel to the slab: inside for every t, or never
-        if (o < F64(0.0f) || o > hi) span = make_double2(F64(INF_F), F64(-INF_F));
-    } else {
-        double ta = (F64(0.0f) - o) / d;
-        double tb = (hi - o) / d;
-        span = make_double2(max(span.x, min(ta, tb)), min(span.y, max(ta, tb)));
-    }
-    return span;
-}
-
 INLINE GridRay make_grid_ray(CTX_PARAM Ray r) {
-    double3 scale = F64_3(V(grid_inv_voxel).xyz);
-    double3 o = (F64_3(r.o) - F64_3(V(grid_origin).xyz)) * scale;
-    double3 d = F64_3(r.d) * scale;
-    int3 res = V(grid_res).xyz;
-    double2 box = make_double2(F64(r.tmin), F64(r.tmax));
-    box = grid_slab(box, o.x, d.x, F64(res.x));
-    box = grid_slab(box, o.y, d.y, F64(res.y));
-    box = grid_slab(box, o.z, d.z, F64(res.z));
     GridRay g;
-    // t_base is a float (hits are float t), and the walk's frame starts exactly there.
-    g.t_base = box.x <= box.y ? F32(box.x) : r.tmin;
-    g.o = F32_3(o + d * F64(g.t_base));
-    g.d = r.d * V(grid_inv_voxel).xyz;
+    float3 scale = V(grid_inv_voxel).xyz;
+    float3 box = make_float3(F32(V(grid_res).x), F32(V(grid_res).y), F32(V(grid_res).z));
+    g.d = r.d * scale;
     g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
     g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
-    g.span = box.x <= box.y ? make_float2(F32(box.x - F64(g.t_base)), F32(box.y - F64(g.t_base)))
-                            : make_float2(1.0f, 0.0f);
+    // t of the line's point nearest the box's centre, from the float32 origin (rough far away:
+    // any t near the box serves) ...
+    float3 rough = to_grid(CTX_ARG r.o);
+    g.t_base = dot(0.5f * box - rough, g.d) / dot(g.d, g.d);
+    // ... and that point, exact: the origin and direction in grid space are exact in double
+    // (products and differences of floats), so is o + d t_base up to one rounding.
+    double3 scale64 = F64_3(scale);
+    double3 o = (F64_3(r.o) - F64_3(V(grid_origin).xyz)) * scale64;
+    g.o = F32_3(o + F64_3(r.d) * scale64 * F64(g.t_base));
+    float2 span = ray_box(g.o, g.inv, g.d, make_float3(0.0f, 0.0f, 0.0f), box);
+    g.span = make_float2(max(span.x, r.tmin - g.t_base), min(span.y, r.tmax - g.t_base));
     return g;
 }
 

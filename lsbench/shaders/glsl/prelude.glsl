@@ -11,11 +11,9 @@
 #define uint4 uvec4
 // Double precision (core since GL 4.0; llvmpipe and NVIDIA run it): used only where float32 cannot
 // place a point, once per ray (common/trace.h: make_grid_ray).
-#define double2 dvec2
 #define double3 dvec3
 #define F64(x) double(x)
 #define F64_3(v) dvec3(v)
-#define make_double2(x, y) dvec2(x, y)
 #define F32_3(v) vec3(v)
 #define make_float2(x, y) vec2(x, y)
 #define make_float3(x, y, z) vec3(x, y, z)

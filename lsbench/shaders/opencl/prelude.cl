@@ -19,14 +19,11 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #define F64(x) ((double)(x))
 #define F64_3(v) convert_double3(v)
-#define make_double2(x, y) ((double2)((x), (y)))
 #else
 #define double float
-#define double2 float2
 #define double3 float3
 #define F64(x) ((float)(x))
 #define F64_3(v) (v)
-#define make_double2(x, y) ((float2)((x), (y)))
 #endif
 #define F32_3(v) convert_float3(v)
 // Every shared function inlined: PoCL's LLVM left ray_triangle_wt, test_candidates and the walks as
