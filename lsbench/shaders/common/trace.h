@@ -252,23 +252,25 @@ INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
 #endif
 }
 
-// The ray in grid space (scene.h), for walks over cells and for Line Space lookups, measured from a
-// point by the scene's box [0, grid_res]: o is the point of the ray's line at t = t_base, the one
-// nearest the box's centre, and a walk measures t from there: its t is t_base + t in world terms
-// (trace_done takes the world t). span: where [tmin, tmax] lies in the box, from t_base
-// (span.x > span.y: the ray misses the box). voxel_t: one voxel edge along the ray's main axis, in
-// t (the most t a chord through one voxel can span along that axis). Unused fields cost nothing:
-// the compiler drops them.
+// The ray in grid space (scene.h), for walks over cells and for Line Space lookups: o is the point
+// of the ray's line at t = t_base, and a walk measures t from there: its t is t_base + t in world
+// terms (trace_done takes the world t). Near the box t_base is 0 and o the ray's origin; from far
+// away (GRID_NEAR_VOXELS) o is the line's point nearest the box's centre. span: where [tmin, tmax]
+// lies in the box, from t_base (span.x > span.y: the ray misses the box). voxel_t: one voxel edge
+// along the ray's main axis, in t (the most t a chord through one voxel can span along that axis).
+// Unused fields cost nothing: the compiler drops them.
 // Why the move, and why in double: an origin 1e4 scene diagonals away lies millions of voxels
 // from the box (2.2e6 at 128³), where float32 grid coordinates are 0.25 voxels apart and t values
 // (1.7e5 for a 17-unit scene) 0.016 apart. The grid walk took its entry cell from such a point and
 // stepped t there by adding one voxel's t (0.13) per step, rounded each time: it drifted off the
 // ray's line, past the build's overlap margin (BOX_EPS 1e-3 voxels), and lost hits
-// (tests/test_far_origins.py: 242 of 1024 rays at 128³). The frame's point is placed in double
-// (preludes: F64; a dozen multiply-adds per ray, no division), exactly on the ray's line for its
-// t_base, which itself need not be exact: so the walk starts on the line to float32 precision of
-// the box's own coordinates, its t values stay as small as the box, whatever the origin, and the
-// box's span is found in float from there.
+// (tests/test_far_origins.py: 242 of 1024 rays at 128³). The far frame's point is placed in double
+// (preludes: F64; a dozen multiply-adds, no division), exactly on the ray's line for its t_base,
+// which itself need not be exact: so the walk starts on the line to float32 precision of the box's
+// own coordinates and its t values stay as small as the box. Within GRID_NEAR_VOXELS of the box's
+// centre, float32 grid coordinates are at most 2^-13 voxels apart, an eighth of BOX_EPS, and the
+// origin serves as it is (the double path cost PoCL 2 % of Sponza's primary rays for nothing there).
+#define GRID_NEAR_VOXELS 1024.0f
 STRUCT(GridRay) { float3 o; float3 d; float3 inv; float voxel_t; float t_base; float2 span; };
 
 INLINE GridRay make_grid_ray(CTX_PARAM Ray r) {
@@ -278,15 +280,19 @@ INLINE GridRay make_grid_ray(CTX_PARAM Ray r) {
     g.d = r.d * scale;
     g.inv = make_float3(safe_rcp(g.d.x), safe_rcp(g.d.y), safe_rcp(g.d.z));
     g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
-    // t of the line's point nearest the box's centre, from the float32 origin (rough far away:
-    // any t near the box serves) ...
-    float3 rough = to_grid(CTX_ARG r.o);
-    g.t_base = dot(0.5f * box - rough, g.d) / dot(g.d, g.d);
-    // ... and that point, exact: the origin and direction in grid space are exact in double
-    // (products and differences of floats), so is o + d t_base up to one rounding.
-    double3 scale64 = F64_3(scale);
-    double3 o = (F64_3(r.o) - F64_3(V(grid_origin).xyz)) * scale64;
-    g.o = F32_3(o + F64_3(r.d) * scale64 * F64(g.t_base));
+    g.o = to_grid(CTX_ARG r.o);
+    g.t_base = 0.0f;
+    float3 off = g.o - 0.5f * box;
+    if (max(fabs(off.x), max(fabs(off.y), fabs(off.z))) > GRID_NEAR_VOXELS) {
+        // Far: the frame's point is the line's nearest to the box's centre. Its t from the float32
+        // origin is rough (any t near the box serves); the point itself is exact: the origin
+        // and direction in grid space are exact in double (products and differences of floats),
+        // so is o + d t_base up to one rounding.
+        g.t_base = -dot(off, g.d) / dot(g.d, g.d);
+        double3 scale64 = F64_3(scale);
+        double3 o = (F64_3(r.o) - F64_3(V(grid_origin).xyz)) * scale64;
+        g.o = F32_3(o + F64_3(r.d) * scale64 * F64(g.t_base));
+    }
     float2 span = ray_box(g.o, g.inv, g.d, make_float3(0.0f, 0.0f, 0.0f), box);
     g.span = make_float2(max(span.x, r.tmin - g.t_base), min(span.y, r.tmax - g.t_base));
     return g;
