@@ -410,7 +410,7 @@ def test_runs_of_one_commit_give_one_sample_per_process(tmp_path, capsys):
     assert "3 vs 3 processes per case" in out and "3v3p" in out and "(+2 more runs)" in out
 
 
-def test_compare_commits_repeats_across_processes(tmp_path, capsys):
+def test_compare_commits_repeats_across_processes(tmp_path, capsys, monkeypatch):
     repo, scenario = fake_repo(tmp_path)
     res = commits.compare_commits("HEAD~1", "HEAD", scenario, out_dir=tmp_path / "cmp", repo_dir=repo,
                                   processes=2, stream=sys.stderr)
@@ -424,6 +424,12 @@ def test_compare_commits_repeats_across_processes(tmp_path, capsys):
     text = res.to_text()
     assert "2 vs 2 processes per case: smallest possible p 0.167" in text
     assert "NO speed regression can be flagged; 3 processes per side are needed" in text
+    # the command: its comparison page goes beside both sides' runs (it crashed on a display name)
+    monkeypatch.chdir(repo)
+    assert cli.main(["compare-commits", "HEAD~1", "HEAD", str(scenario), "--processes", "2",
+                     "--out", str(tmp_path / "cli")]) == 0
+    assert (tmp_path / "cli" / "compare.html").is_file()
+    assert f"wrote {tmp_path / 'cli' / 'compare.html'}" in capsys.readouterr().out
 
 
 def test_tied_small_samples_get_the_exact_permutation_p():

@@ -65,5 +65,5 @@ def run(args) -> int:
     res.cases.sort(key=severity)
     print(format_table(res))
     if args.report:
-        print(f"wrote {write_compare_html(res, Path(args.head) / 'compare.html')}")
+        print(f"wrote {write_compare_html(res, Path(res.folder) / 'compare.html')}")
     return res.exit_code

@@ -53,5 +53,5 @@ def run(args) -> int:
         print(f"lsbench compare-commits: error: {str(msg).strip()}", file=sys.stderr)
         return 2
     print(format_table(res))
-    print(f"wrote {write_compare_html(res, Path(res.head_dir) / 'compare.html')}")
+    print(f"wrote {write_compare_html(res, Path(res.folder) / 'compare.html')}")
     return res.exit_code

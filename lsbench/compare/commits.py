@@ -139,7 +139,9 @@ def compare_commits(rev_a: str, rev_b: str, scenario, factor: float = DEFAULT_FA
             for i, (rev, sha) in enumerate(zip((rev_a, rev_b), shas)):
                 label = f"{'ab'[i]}-{slug(rev, empty='rev')}-{sha[:10]}" + (f"-p{k + 1}" if k else "")
                 dirs[i].append(runner.run(sha, out_dir / label, rev))
-    return compare_runs(dirs[0], dirs[1], factor=factor, alpha=alpha, only_common=only_common)
+    result = compare_runs(dirs[0], dirs[1], factor=factor, alpha=alpha, only_common=only_common)
+    result.folder = str(out_dir)  # both sides' runs are in it: so is their comparison
+    return result
 
 
 def scenario_name(scenario) -> str | None:

@@ -114,6 +114,9 @@ class CompareResult:
     only_common: bool = False  # head lacking base's cases is then no failure
     n_base_runs: int = 1
     n_head_runs: int = 1
+    # Where the comparison's own files (compare.html) go: the head run's folder, or the folder
+    # that holds both sides' runs (compare-commits). base_dir / head_dir are display names.
+    folder: str | None = None
 
     @property
     def tested(self) -> list[CaseDiff]:
@@ -399,7 +402,8 @@ def compare_runs(base_dir, head_dir, factor: float = DEFAULT_FACTOR,
         return dirs[0] + (f" (+{len(dirs) - 1} more runs)" if len(dirs) > 1 else "")
 
     return CompareResult(name(base_dirs), name(head_dirs), factor, alpha, base_info, head_info,
-                         cases, warnings, verdicts_given, only_common, len(base_dirs), len(head_dirs))
+                         cases, warnings, verdicts_given, only_common, len(base_dirs), len(head_dirs),
+                         folder=head_dirs[0])
 
 
 # ---------------------------------------------------------------- output
