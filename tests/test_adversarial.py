@@ -53,7 +53,7 @@ def test_ray_set_contents():
 
 
 @pytest.mark.parametrize("structure", STRUCTURES)
-@pytest.mark.parametrize("scene_name", ["cornell", "two-planes"])
+@pytest.mark.parametrize("scene_name", ["cornell", "two-planes", "adversarial"])
 def test_adversarial_agrees_or_documented_tie(device, structure, scene_name):
     scene = load_scene(scene_name)
     out = _check(device, structure, scene)

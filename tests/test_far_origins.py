@@ -57,3 +57,14 @@ def test_far_origins_hit_the_floor(device, structure):
     assert (out["ref"][0] >= 0).all()  # Embree: every ray hits the floor
     # exact agreement but for rays near the floor's diagonal (a tie between its two triangles)
     assert out["counts"].get("agree", 0) >= 0.99 * rays.count, out["counts"]
+
+
+@pytest.mark.parametrize("structure,resolution", [("grid", (128, 128, 128)), ("esvo", (256, 256, 256))])
+def test_adversarial_scene_on_fine_cells(device, structure, resolution):
+    """The built-in adversarial scene (strips in the bounding planes, slivers, 1e4 units out) under
+    the adversarial rays, whose `far` rays start 1e4 diagonals away: the old grid walk had 10
+    unexplained at 128³ (32 at 256³)."""
+    from lsbench.inputs.scenes import load_scene
+
+    out = check_structure(device, structure, load_scene("adversarial"), resolution)
+    assert out["unexplained"] == [], explain(out)

@@ -20,6 +20,7 @@ BUILTIN_COUNTS = {
     "single-triangle": (1, 1),
     "quad": (2, 2),
     "two-planes": (4, 4),
+    "adversarial": (2520, 2520),
 }
 
 

@@ -345,6 +345,58 @@ def _build_two_planes() -> Scene:
     return _scene("two-planes", parts, _TINY_CAMERA)
 
 
+# ----------------------------------------------------------------------------------------------
+# adversarial: the cases where structures fail, in one 10-unit box 1e4 units from the world origin
+
+ADVERSARIAL_OFFSET = (1.0e4, -2.5e4, 3.0e4)  # float32 steps of 1-2 mm there
+
+
+def _triangles(tris) -> Part:
+    """Loose triangles (n, 3, 3): three vertices each, none shared."""
+    tris = np.asarray(tris, np.float64).reshape(-1, 3, 3)
+    return tris.reshape(-1, 3), np.arange(3 * len(tris)).reshape(-1, 3)
+
+
+def _build_adversarial() -> Scene:
+    """Thin strips lying exactly in the bounding box's planes (x = 0, x = 10, y = 10, z = 10: the
+    grid's outer cells, where a hit's t lands a hair past the last exit), a floor and a back wall
+    that close two sides, a dense cell (a fan of 1500 slivers around one point, every sliver
+    sharing its centre vertex), coplanar duplicates (each triangle twice and once flipped),
+    zero-area triangles (a repeated vertex; collinear vertices), 800 small random triangles, and
+    the whole 1e4 units from the world origin, where float32 coordinates are 1-2 mm apart. A
+    camera 1e4 scene diagonals away (the rays' own far-origin case) is a scenario setting."""
+    rng = np.random.default_rng(20261203)  # fixed seed: the scene is the same in every run
+    L = 10.0
+    t = np.arange(24)[:, None] * (L / 24)
+    z, one = np.zeros_like(t), np.ones_like(t)
+    strips = np.concatenate([
+        np.stack([np.c_[z, t, z], np.c_[z, t + 0.01, L * one], np.c_[z, t, L * one]], 1),            # x = 0
+        np.stack([np.c_[L * one, z, t], np.c_[L * one, L * one, t + 0.005], np.c_[L * one, L * one, t]], 1),  # x = L
+        np.stack([np.c_[t, L * one, z], np.c_[t + 0.003, L * one, L * one], np.c_[t, L * one, L * one]], 1),  # y = L
+        np.stack([np.c_[z, t, L * one], np.c_[L * one, t + 0.002, L * one], np.c_[L * one, t, L * one]], 1),  # z = L
+    ])
+    a = 2 * np.pi * np.arange(1501) / 1500
+    rim = np.c_[np.cos(a), np.sin(a), np.full_like(a, 0.3)] + 5.0
+    fan = np.stack([np.broadcast_to([5.0, 5.0, 5.0], rim[:-1].shape), rim[:-1], rim[1:]], 1)
+    p = rng.uniform(1, 9, (20, 1, 3))
+    base = p + np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0]])
+    duplicates = np.concatenate([base, base, base[:, [0, 2, 1]]])
+    q = rng.uniform(1, 9, (30, 1, 3))
+    degenerate = np.concatenate([q + np.array([[0, 0, 0], [0, 0, 0], [0.1, 0.1, 0.1]]),
+                                 q + np.array([[0, 0, 0], [0.2, 0.2, 0.2], [0.4, 0.4, 0.4]])])
+    c = rng.uniform(0.5, 9.5, (800, 1, 3))
+    # kept inside, so the strips stay exactly on the bounding planes
+    small = np.clip(c + np.concatenate([np.zeros((800, 1, 3)), rng.normal(0, 0.15, (800, 2, 3))], 1), 0.2, 9.8)
+    parts = [_rect_y(0, L, 0, L, 0.0), _rect_z(0, L, 0, L, 0.0),
+             _triangles(np.concatenate([strips, fan, duplicates, degenerate, small]))]
+    vertices, faces = _concat(parts)
+    vertices = vertices + np.asarray(ADVERSARIAL_OFFSET)
+    centre = np.asarray(ADVERSARIAL_OFFSET) + L / 2
+    camera = Camera(eye=tuple((centre + [9.0, 6.0, 21.0]).tolist()), target=tuple(centre.tolist()),
+                    fov_deg=50.0)
+    return checked_scene("adversarial", vertices, faces, "builtin:adversarial", camera)
+
+
 BUILTIN_SCENES: dict[str, Callable[[], Scene]] = {
     "atrium": _build_atrium,
     "cornell": _build_cornell,
@@ -352,4 +404,5 @@ BUILTIN_SCENES: dict[str, Callable[[], Scene]] = {
     "single-triangle": _build_single_triangle,
     "quad": _build_quad,
     "two-planes": _build_two_planes,
+    "adversarial": _build_adversarial,
 }
