@@ -5,7 +5,7 @@ An origin 1e4 scene diagonals from the box lies millions of voxels away, where f
 coordinates are 0.25 voxels apart (128³) and a walk's t values 0.016 apart. Walks that computed their
 entry and their steps there drifted off the ray's line: on the floor below, the grid at 128³ lost
 242 of these 1024 rays, at 256³ 530 (1e3 diagonals away: 31 and 181). trace.h's make_grid_ray
-now finds the entry in double and the walks measure t from there."""
+now places a far ray's frame on its line by the box in double, and the walks measure t from there."""
 from __future__ import annotations
 
 import numpy as np

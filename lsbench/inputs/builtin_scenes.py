@@ -387,14 +387,12 @@ def _build_adversarial() -> Scene:
     c = rng.uniform(0.5, 9.5, (800, 1, 3))
     # kept inside, so the strips stay exactly on the bounding planes
     small = np.clip(c + np.concatenate([np.zeros((800, 1, 3)), rng.normal(0, 0.15, (800, 2, 3))], 1), 0.2, 9.8)
-    parts = [_rect_y(0, L, 0, L, 0.0), _rect_z(0, L, 0, L, 0.0),
-             _triangles(np.concatenate([strips, fan, duplicates, degenerate, small]))]
-    vertices, faces = _concat(parts)
-    vertices = vertices + np.asarray(ADVERSARIAL_OFFSET)
+    box = _concat([_rect_y(0, L, 0, L, 0.0), _rect_z(0, L, 0, L, 0.0),
+                   _triangles(np.concatenate([strips, fan, duplicates, degenerate, small]))])
     centre = np.asarray(ADVERSARIAL_OFFSET) + L / 2
     camera = Camera(eye=tuple((centre + [9.0, 6.0, 21.0]).tolist()), target=tuple(centre.tolist()),
                     fov_deg=50.0)
-    return checked_scene("adversarial", vertices, faces, "builtin:adversarial", camera)
+    return _scene("adversarial", [_instances(box, ADVERSARIAL_OFFSET)], camera)
 
 
 BUILTIN_SCENES: dict[str, Callable[[], Scene]] = {

@@ -52,8 +52,8 @@ INLINE Trace esvo_suspend(Trace tr, uint parent, uint idx, int scale, float3 pos
 
 INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
     Trace tr = trace_start(CTX_ARG ray, id);
-    // The ray from its entry into the scene's box (trace.h: make_grid_ray), and esvo-ls' Line
-    // Space lookup; every t below is from gr.t_base.
+    // The ray in grid space from a point by the scene's box (trace.h: make_grid_ray), also for
+    // esvo-ls' Line Space lookup; every t below is from gr.t_base.
     GridRay gr = make_grid_ray(CTX_ARG ray);
     // Octree space (thesis 5.2.2, "Implementierung"): origin moved to the cube's corner,
     // divided by the cube's edge, shifted by one; the direction divided by the edge and
