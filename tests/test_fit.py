@@ -276,12 +276,13 @@ def test_walks_top_down_are_every_level_walked_whole(scene_name, structure, reso
     enter, leave, _ = box_span(o, d, drawn.tmin, drawn.t_end, geometry.resolution)
     rx, ry, _ = geometry.resolution
     if octree:
-        levels = counts.occupancy
-        depth = len(levels) - 1
+        levels = counts.occupancy  # root .. the leaves' parents
+        depth = len(levels)
         expected = np.zeros(len(drawn.t_end), np.int64)
         for level in range(1, depth + 1):
             leaves = 2.0 ** (depth - level)
-            r, x, y, z = crossings(o / leaves, d / leaves, enter, leave, levels[level].shape[::-1])
+            box = levels[level].shape[::-1] if level < depth else geometry.resolution
+            r, x, y, z = crossings(o / leaves, d / leaves, enter, leave, box)
             keep = levels[level - 1][z >> 1, y >> 1, x >> 1]
             expected += np.bincount(r[keep], minlength=len(expected))
     else:
@@ -295,6 +296,59 @@ def test_walks_top_down_are_every_level_walked_whole(scene_name, structure, reso
     listed = counts.counts.ravel()[cells] > 0
     assert set(zip(ray_ids[listed].tolist(), cells[listed].tolist())) == leaf_pairs
     assert len(ray_ids) == len(set(zip(ray_ids.tolist(), cells.tolist())))  # each pair once
+
+
+@pytest.mark.parametrize("backend", ["opencl", "glsl", "glsl-raster"])
+@pytest.mark.parametrize("scene_name,structure,resolution", [
+    ("spheres", "esvo", (64, 64, 64)), ("adversarial", "svo", (32, 32, 32)), ("adversarial", "grid", (40, 33, 27))])
+def test_counts_read_in_slabs_are_the_whole_count_pass(monkeypatch, backend, scene_name, structure, resolution):
+    """A grid over COUNT_DENSE_VOXELS is counted slab by slab (grid.h: VOXEL_SLAB) and only its
+    non-empty voxels kept (stats.voxel_counts). Forced here on small grids, in slabs of 5 layers
+    (so octree parents straddle slabs; the last slab short): the same voxels and counts as the
+    whole pass, so the same occupancy, bytes, sampled cells and walks. glsl-raster: every triangle
+    through the raster voxelizer (voxelize_column, which cuts the slab per column; llvmpipe
+    otherwise sends it only the triangles of large bounds)."""
+    import numpy as np
+
+    from lsbench.model import stats
+    from lsbench.model.cost import _walk, draw, predict_work, ray_sample
+
+    device = backends.get_device(backend.removesuffix("-raster"))
+    if backend.endswith("-raster"):
+        monkeypatch.setattr(device, "compute_voxel_cells", None)
+    scene = load_scene(scene_name)
+    geometry = backends.geometry_for(structure, scene, BuildParams(resolution=resolution))
+    rx, ry, rz = geometry.resolution
+    bufs = _scene_buffers(device, scene)
+    try:
+        whole = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        monkeypatch.setattr(stats, "COUNT_DENSE_VOXELS", 0)
+        monkeypatch.setattr(stats, "COUNT_SLAB_VOXELS", 5 * rx * ry)
+        slabs = voxel_counts(device, bufs, scene.triangle_count, geometry)
+    finally:
+        for b in bufs.values():
+            device.release(b)
+    assert whole.counts is not None and slabs.counts is None and rz % 5 != 0
+    assert whole.non_empty > 0
+    for a, b in zip(whole.listed, slabs.listed):
+        assert np.array_equal(a, b)
+    assert (whole.references, whole.densest, whole.above(3)) == (slabs.references, slabs.densest, slabs.above(3))
+    probe = np.random.default_rng(3).integers(0, geometry.voxel_count, 20000)
+    assert np.array_equal(whole.at(probe), slabs.at(probe))
+    assert np.array_equal(whole.at(whole.listed[0]), slabs.listed[1])
+    assert len(whole.occupancy) == len(slabs.occupancy)
+    for a, b in zip(whole.occupancy, slabs.occupancy):
+        assert np.array_equal(a.astype(bool), b)
+    assert whole.level_cells() == slabs.level_cells()
+    assert predict_bytes(device, structure, whole) == predict_bytes(device, structure, slabs)
+    for a, b in zip(stats.sample_cells(whole, 32, 100), stats.sample_cells(slabs, 32, 100)):
+        assert np.array_equal(a, b)
+    rays, hit_t = _rays_and_truth(scene, 48, 48)
+    sample = ray_sample(rays, hit_t, size=1024, width=8)
+    octree = geometry.cube > 0
+    for a, b in zip(_walk(whole, draw(sample, whole), octree), _walk(slabs, draw(sample, slabs), octree)):
+        assert np.array_equal(a, b)
+    assert predict_work(structure, whole, sample) == predict_work(structure, slabs, sample)
 
 
 def test_issued_work_is_each_groups_busiest_lane():

@@ -44,7 +44,7 @@ from lsbench.backends.structures.base import GridGeometry
 from lsbench.backends.structures.linespace import ListSizes, offset_entries, shafts_per_cell
 from lsbench.model.bytes import BytesPrediction, predict_bytes
 from lsbench.model.constants import load_constants
-from lsbench.model.stats import LineSpaceSample, VoxelCounts, halved
+from lsbench.model.stats import LineSpaceSample, VoxelCounts
 from lsbench.profile.simd import issued_per_ray, simd_lanes
 
 GRID_LAMBDAS = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)
@@ -160,7 +160,7 @@ def draw(sample: RaySample, counts: VoxelCounts) -> Drawn:
         voxel = np.clip(np.floor((sample.hit_points - np.asarray(g.origin)) / np.asarray(g.voxel_size)),
                         0, res - 1).astype(np.int64)
         flat = voxel[:, 0] + res[0] * (voxel[:, 1] + res[1] * voxel[:, 2])
-        listed = np.where(sample.hit, counts.counts.ravel()[flat], 0)
+        listed = np.where(sample.hit, counts.at(flat), 0)
         root = np.sqrt(np.maximum.reduceat(listed.astype(np.float64), starts))
         q = root + root.mean() if root.any() else np.ones(len(starts))
         q /= q.sum()
@@ -312,7 +312,7 @@ def _work_per_ray(structure: str, counts: VoxelCounts, drawn: Drawn, k: int,
     info = STRUCTURES[structure]
     n_rays = len(drawn.t_end)
     ray_ids, cells, iterations = _walk(counts, drawn, info.cubic_power_of_two)
-    listed = counts.counts.ravel()[cells].astype(np.float64)
+    listed = counts.at(cells).astype(np.float64)
     lookups = np.zeros(n_rays)
     if info.line_space:
         with_ls = listed > k
@@ -399,9 +399,7 @@ def _grid_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.ndarr
     res = tuple(int(v) for v in g.resolution)
     o, d = _in_grid(sample, g)
     enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, res)
-    blocks = counts.counts
-    for _ in range(GRID_WALK_BLOCK.bit_length() - 1):
-        blocks = halved(blocks)
+    blocks = counts.coarse(GRID_WALK_BLOCK.bit_length() - 1)
     b = float(GRID_WALK_BLOCK)
     rays, x, y, z = crossings(o / b, d / b, enter, leave, blocks.shape[::-1])
     keep = blocks[z, y, x]
@@ -414,8 +412,8 @@ def _octree_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.nda
     """An octree's walk (_walk), from the root to the leaves: a ray's cells of level l + 1 are the
     children it crosses of its non-empty cells of level l, and they are that level's iterations.
     Both octree walks cover the scene's box only (svo.h, esvo.h), so each ray is cut to the box."""
-    levels = counts.occupancy  # (z, y, x) per level over the box, root first: non-zero where non-empty
-    depth = len(levels) - 1
+    levels = counts.occupancy  # (z, y, x) per level over the box, root first, leaves' parents last
+    depth = len(levels)
     n_rays = len(sample.t_end)
     o, d = _in_grid(sample, counts.geometry)
     enter, leave, _ = box_span(o, d, sample.tmin, sample.t_end, counts.geometry.resolution)
@@ -424,8 +422,8 @@ def _octree_walk(counts: VoxelCounts, sample: Drawn) -> tuple[np.ndarray, np.nda
     iterations = np.zeros(n_rays, np.int64)
     for level in range(1, depth + 1):
         keep = levels[level - 1][cell[2], cell[1], cell[0]]
-        rays, cell = _children(o, d, enter, leave, rays[keep], cell[:, keep], 2, 2.0 ** (depth - level),
-                               levels[level].shape[::-1])
+        box = levels[level].shape[::-1] if level < depth else counts.geometry.resolution
+        rays, cell = _children(o, d, enter, leave, rays[keep], cell[:, keep], 2, 2.0 ** (depth - level), box)
         iterations += np.bincount(rays, minlength=n_rays)
     rx, ry, _ = (int(v) for v in counts.geometry.resolution)
     return rays, cell[0] + rx * (cell[1] + ry * cell[2]), iterations
@@ -665,7 +663,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
         # Line Space samples only for the N whose offsets alone (at the largest K) may fit.
         wanted = [n for n in ns if budget_bytes is None or _offsets_bytes(counts, n, max(ks)) <= budget_bytes]
         samples = line_space_samples(device, bufs, scene.triangle_count, geometry, counts, wanted) if wanted else {}
-        densest = int(counts.counts.max(initial=0))
+        densest = counts.densest
         out = []
         for n in ns:
             # Every K at or over the densest cell's count builds no Line Space at all: one of them is tried.

@@ -31,54 +31,106 @@ LS_SAMPLE_MIN = 4
 LS_SAMPLE_PAIRS = 2**24
 
 
+# A count pass over more voxels than this is read in slabs of z layers of at most COUNT_SLAB_VOXELS
+# voxels, one buffer reused, keeping the non-empty voxels only (voxel_counts): spheres' 512^3 octree
+# box is 512 x 224 x 512 voxels, a 235 MB buffer whose first touch alone took 0.2-0.9 s on this
+# VM, and the occupancy pyramid halved all of it again (docs/fit.md).
+COUNT_DENSE_VOXELS = 2**23
+COUNT_SLAB_VOXELS = 2**22
+
+
 @dataclass
 class VoxelCounts:
-    """Triangles per voxel of one grid geometry (the count pass), as a (z, y, x) array: voxel
-    (x, y, z) is x + Rx * (y + Ry * z) as on the device (grid.h)."""
+    """Triangles per voxel of one grid geometry (the count pass): either whole, as a (z, y, x)
+    array (`counts`; voxel (x, y, z) is x + Rx * (y + Ry * z) as on the device, grid.h), or, for a
+    grid over COUNT_DENSE_VOXELS, only the non-empty voxels: their flat ids, ascending, and their
+    counts (`listed`). Everything the model asks of the counts goes through the methods below,
+    which answer alike for both."""
     geometry: GridGeometry
-    counts: np.ndarray  # uint32, shape (Rz, Ry, Rx)
+    counts: np.ndarray | None  # uint32, shape (Rz, Ry, Rx); None: only the non-empty voxels are held
+    sparse: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # (int64 ids, uint32 counts)
     walks: dict = field(default_factory=dict, repr=False)  # model/cost.py's ray walks, per ray sample
+
+    @functools.cached_property
+    def listed(self) -> tuple[np.ndarray, np.ndarray]:
+        """(flat ids ascending, counts) of the non-empty voxels."""
+        if self.sparse is not None:
+            return self.sparse
+        flat = self.counts.ravel()
+        ids = np.flatnonzero(flat != 0)
+        return ids, flat[ids]
 
     @property
     def voxels(self) -> int:
-        return int(self.counts.size)
+        return int(self.geometry.voxel_count)
 
     @property
     def references(self) -> int:
-        return int(self.counts.sum(dtype=np.int64))
+        return int(self.listed[1].sum(dtype=np.int64))
 
     @property
     def non_empty(self) -> int:
-        return int(np.count_nonzero(self.counts))
+        return int(len(self.listed[0]))
+
+    @property
+    def densest(self) -> int:
+        """The most candidates in one voxel (0: none)."""
+        return int(self.listed[1].max(initial=0))
 
     def above(self, k: int) -> tuple[int, int]:
         """(cells, references) of the voxels with more than k candidates (those that get a Line
         Space at ls_min_candidates = k)."""
-        keep = self.counts > k
-        return int(np.count_nonzero(keep)), int(self.counts[keep].sum(dtype=np.int64))
+        values = self.listed[1]
+        keep = values > k
+        return int(np.count_nonzero(keep)), int(values[keep].sum(dtype=np.int64))
+
+    def at(self, flat: np.ndarray) -> np.ndarray:
+        """The counts of the voxels of flat ids `flat` (0 where empty)."""
+        if self.counts is not None:
+            return self.counts.ravel()[flat]
+        ids, values = self.sparse
+        if len(ids) == 0:
+            return np.zeros(np.shape(flat), np.uint32)
+        i = np.minimum(np.searchsorted(ids, flat), len(ids) - 1)
+        return np.where(ids[i] == flat, values[i], 0).astype(np.uint32)
+
+    def coarse(self, steps: int) -> np.ndarray:
+        """Non-zero where non-empty, for the cells of 2^steps x 2^steps x 2^steps voxels (those past
+        an odd extent cut by the box), as a (z, y, x) array: the counts themselves for steps = 0
+        when held whole (not copied), else booleans."""
+        if self.counts is not None:
+            occ = self.counts
+            for _ in range(steps):
+                occ = halved(occ)
+            return occ
+        rx, ry, rz = (int(v) for v in self.geometry.resolution)
+        shape = tuple(-(-r >> steps) for r in (rz, ry, rx))
+        ids = self.sparse[0]
+        x, y, z = ids % rx >> steps, ids // rx % ry >> steps, ids // (rx * ry) >> steps
+        occ = np.zeros(shape, bool)
+        occ[z, y, x] = True
+        return occ
 
     @functools.cached_property
     def occupancy(self) -> list[np.ndarray]:
-        return self.occupancy_levels()
-
-    def occupancy_levels(self) -> list[np.ndarray]:
-        """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth as
-        (z, y, x) arrays, non-zero where non-empty: booleans above the leaves, the leaf level the
-        counts themselves (not copied: 235 MB at spheres' 512³); a cell is non-empty when one of its
-        8 children is (svo.py's flag pyramid). The counts cover the scene's box
+        """Octrees (cubic power-of-two resolution): the non-empty cells of levels 0..depth - 1 (root
+        first, the leaves' parents last) as (z, y, x) arrays of booleans: a cell is non-empty when
+        one of its 8 children is (svo.py's flag pyramid). The counts cover the scene's box
         (GridGeometry.over_bounds, cubic), so level l holds only the cells of its 2^l per axis over
-        the box, ceil(box / 2^(depth - l)); the cube's cells past them are empty."""
-        cube = self.geometry.cube or self.counts.shape[0]
-        occ = self.counts
-        levels = [occ]
-        for _ in range(cube.bit_length() - 1):
-            occ = halved(occ)
-            levels.append(occ)
+        the box, ceil(box / 2^(depth - l)); the cube's cells past them are empty. The leaves are
+        the counts themselves (at, listed)."""
+        cube = self.geometry.cube or self.geometry.resolution[0]
+        depth = cube.bit_length() - 1
+        if depth == 0:
+            return []
+        levels = [self.coarse(1)]
+        for _ in range(depth - 1):
+            levels.append(halved(levels[-1]))
         return levels[::-1]
 
     def level_cells(self) -> list[int]:
         """Non-empty cells per octree level 0..depth (the nodes of each level, leaves last)."""
-        return [int(np.count_nonzero(level)) for level in self.occupancy]
+        return [int(np.count_nonzero(level)) for level in self.occupancy] + [self.non_empty]
 
 
 def halved(occ: np.ndarray) -> np.ndarray:
@@ -107,18 +159,39 @@ def _pairs_or(occ: np.ndarray, axis: int) -> np.ndarray:
 
 def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
     """The voxelization's count pass at `geometry` on the device (the same kernel every grid and
-    octree build runs first), read back."""
+    octree build runs first), read back: whole up to COUNT_DENSE_VOXELS voxels, past that slab
+    by slab (grid.h: VOXEL_SLAB), keeping the non-empty voxels only."""
     grid.prepare(device)
-    buf = device.alloc_readable("model_voxel_counts", 4 * geometry.voxel_count)
+    rx, ry, rz = geometry.resolution
+    if geometry.voxel_count <= COUNT_DENSE_VOXELS:
+        buf = device.alloc_readable("model_voxel_counts", 4 * geometry.voxel_count)
+        try:
+            device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
+                            geometry.uniforms(), geometry.resolution)
+            device.finish()
+            counts = device.read_readable(buf, np.uint32, geometry.voxel_count)
+        finally:
+            device.release(buf)
+        return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # an array of its own (read_readable)
+    layer = rx * ry
+    layers = max(1, COUNT_SLAB_VOXELS // layer)
+    buf = device.alloc_readable("model_voxel_counts", 4 * layer * min(layers, rz))
+    ids, values = [], []
     try:
-        device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
-                        geometry.uniforms(), geometry.resolution)
-        device.finish()
-        counts = device.read_readable(buf, np.uint32, geometry.voxel_count)
+        for z in range(0, rz, layers):
+            z_end = min(z + layers, rz)
+            if z:
+                device.fill_zero(buf)
+            device.voxelize(grid.VOXELIZE_COUNT_SLAB, n_tris, dict(scene_buffers, voxel_counts=buf),
+                            dict(geometry.uniforms(), voxel_slab=(z, z_end, 0, 0)), geometry.resolution)
+            device.finish()
+            slab = device.read_readable(buf, np.uint32, layer * (z_end - z))
+            listed = np.flatnonzero(slab != 0)  # 3-4x faster than of the uint32 array itself
+            ids.append(listed + z * layer)
+            values.append(slab[listed])  # copies: the next slab reuses the buffer
     finally:
         device.release(buf)
-    rx, ry, rz = geometry.resolution
-    return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # an array of its own (read_readable)
+    return VoxelCounts(geometry, None, (np.concatenate(ids).astype(np.int64), np.concatenate(values)))
 
 
 @dataclass
@@ -173,20 +246,23 @@ def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int =
     Drawn evenly over the cells instead, the few dense cells that a threshold K keeps were 1-3 of 32
     and their stored sets came out 0.72-0.80 of the truth; drawn this way, 0.96-0.98 (Sponza, svo-ls
     128^3 N=3, K = 16-64: docs/fit.md)."""
-    flat = counts.counts.ravel()
-    non_empty = np.flatnonzero(flat)
-    order = non_empty[np.argsort(flat[non_empty], kind="stable")]
-    cumulative = np.cumsum(flat[order], dtype=np.float64)
+    non_empty, listed = counts.listed
+    by_count = np.argsort(listed, kind="stable")
+    order, ordered = non_empty[by_count], listed[by_count]
+    cumulative = np.cumsum(ordered, dtype=np.float64)
 
     def draw(k: int) -> tuple[np.ndarray, np.ndarray]:
-        at = np.searchsorted(cumulative, (np.arange(k) + 0.5) * (cumulative[-1] / k), side="right")
-        cells, times = np.unique(order[np.minimum(at, len(order) - 1)], return_counts=True)
-        return cells, times / flat[cells]
+        at = np.minimum(np.searchsorted(cumulative, (np.arange(k) + 0.5) * (cumulative[-1] / k), side="right"),
+                        len(order) - 1)
+        picked, times = np.unique(at, return_counts=True)  # positions in count order, ascending
+        cells = order[picked]
+        keep = np.argsort(cells, kind="stable")
+        return cells[keep], (times / ordered[picked])[keep]
 
     if len(order) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
     cells, weights = draw(size)
-    pairs = int(flat[cells].sum(dtype=np.int64)) * shafts
+    pairs = int(counts.at(cells).sum(dtype=np.int64)) * shafts
     if pairs > LS_SAMPLE_PAIRS:
         cells, weights = draw(max(LS_SAMPLE_MIN, int(size * LS_SAMPLE_PAIRS / pairs)))
     return cells, weights

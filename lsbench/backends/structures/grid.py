@@ -6,7 +6,7 @@ compute kernel, as the device does it best (the same voxel lists either way)."""
 from __future__ import annotations
 
 from ..device import Device, DeviceBuffer, DeviceLimitError
-from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, trace_spec
+from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform, trace_spec
 from .base import BuildParams, BuildResult, GridGeometry
 
 VOXELIZE_HEADERS = ("geometry.h", "scene.h", "grid.h")
@@ -14,6 +14,11 @@ VOXELIZE_HEADERS = ("geometry.h", "scene.h", "grid.h")
 VOXELIZE_COUNT = KernelSpec(
     "voxelize_count", VOXELIZE_HEADERS, "voxelize_kernel",
     SCENE_BUFFERS + (Buf("voxel_counts", "uint", "rw"),), GRID_UNIFORMS)
+# The count pass over z layers [voxel_slab.x, voxel_slab.y) only (grid.h: VOXEL_SLAB), for the
+# cost model's counts of large grids (model/stats.py: voxel_counts).
+VOXELIZE_COUNT_SLAB = KernelSpec(
+    "voxelize_count", VOXELIZE_HEADERS, "voxelize_kernel", VOXELIZE_COUNT.buffers,
+    GRID_UNIFORMS + (Uniform("voxel_slab", "int4"),), (("VOXEL_SLAB", "1"),))
 VOXELIZE_FILL = KernelSpec(
     "voxelize_fill", VOXELIZE_HEADERS, "voxelize_kernel",
     SCENE_BUFFERS + (Buf("voxel_offsets", "uint", "r"), Buf("voxel_cursor", "uint", "rw"),

@@ -12,10 +12,19 @@ INLINE void emit_voxel(CTX_PARAM uint voxel, uint tri) {
 #ifdef KERNEL_voxelize_fill
     uint slot = ATOMIC_ADD(V(voxel_cursor)[voxel], 1u);
     V(voxel_tris)[V(voxel_offsets)[voxel] + slot] = tri;
+#elif defined(VOXEL_SLAB)
+    int3 r = V(grid_res).xyz;  // voxel_counts holds the slab's layers only
+    ATOMIC_ADD(V(voxel_counts)[voxel - U32(V(voxel_slab).x) * U32(r.x) * U32(r.y)], 1u);
 #else
     ATOMIC_ADD(V(voxel_counts)[voxel], 1u);
 #endif
 }
+
+// VOXEL_SLAB (count pass only): count the voxels of z layers [voxel_slab.x, voxel_slab.y) alone,
+// into a buffer of those layers. The cost model reads a large grid's counts slab by slab and keeps
+// only the non-empty voxels (model/stats.py: voxel_counts), so it never holds, nor first touches,
+// a buffer of the whole grid (235 MB at spheres' 512^3 octree). The overlap tests are the
+// full pass's, so each voxel's count is the one the build's count pass finds.
 
 INLINE int overlaps_voxel(Triangle t, int3 cell, float eps) {
     float3 centre = make_float3(F32(cell.x) + 0.5f, F32(cell.y) + 0.5f, F32(cell.z) + 0.5f);
@@ -34,6 +43,10 @@ INLINE void voxelize_triangle(CTX_PARAM uint tri) {
     int x0 = max(I32(floor(lo.x)), 0), x1 = min(I32(floor(hi.x)), r.x - 1);
     int y0 = max(I32(floor(lo.y)), 0), y1 = min(I32(floor(hi.y)), r.y - 1);
     int z0 = max(I32(floor(lo.z)), 0), z1 = min(I32(floor(hi.z)), r.z - 1);
+#ifdef VOXEL_SLAB
+    z0 = max(z0, V(voxel_slab).x);
+    z1 = min(z1, V(voxel_slab).y - 1);
+#endif
 #ifdef VOXELIZE_MAX_CELLS
     // A driver that ends an invocation's loops silently after a budget (llvmpipe: 65535, shared
     // by the lanes of a SIMD group) cannot walk large bounds here: such a triangle is listed in
@@ -90,6 +103,15 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
     }
     int w0 = max(I32(floor(dlo - eps)), 0);
     int w1 = min(I32(floor(dhi + eps)), icomp3(r, w) - 1);
+#ifdef VOXEL_SLAB
+    int4 slab = V(voxel_slab);  // z is the depth (w == 2) or one of the column's coordinates
+    if (w == 2) {
+        w0 = max(w0, slab.x);
+        w1 = min(w1, slab.y - 1);
+    } else if ((w == 0 ? cv : cu) < slab.x || (w == 0 ? cv : cu) >= slab.y) {
+        return;
+    }
+#endif
     for (int d = w0; d <= w1; ++d) {
         int3 cell = w == 0 ? make_int3(d, cu, cv) : (w == 1 ? make_int3(cv, d, cu) : make_int3(cu, cv, d));
         if (overlaps_voxel(t, cell, eps) != 0) emit_voxel(CTX_ARG voxel_index(CTX_ARG cell), tri);
