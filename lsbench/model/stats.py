@@ -160,10 +160,11 @@ def _pairs_or(occ: np.ndarray, axis: int) -> np.ndarray:
 def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry) -> VoxelCounts:
     """The voxelization's count pass at `geometry` on the device (the same kernel every grid and
     octree build runs first), read back: whole up to COUNT_DENSE_VOXELS voxels, past that slab
-    by slab (grid.h: VOXEL_SLAB), keeping the non-empty voxels only."""
-    grid.prepare(device)
+    by slab (grid.h: VOXEL_SLAB), keeping the non-empty voxels only. Compiles only the pass it
+    runs (not the build's fill pass: the build compiles that in its own prepare)."""
     rx, ry, rz = geometry.resolution
     if geometry.voxel_count <= COUNT_DENSE_VOXELS:
+        device.compile_voxelizer(grid.VOXELIZE_COUNT)
         buf = device.alloc_readable("model_voxel_counts", 4 * geometry.voxel_count)
         try:
             device.voxelize(grid.VOXELIZE_COUNT, n_tris, dict(scene_buffers, voxel_counts=buf),
@@ -173,6 +174,7 @@ def voxel_counts(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
         finally:
             device.release(buf)
         return VoxelCounts(geometry, counts.reshape(rz, ry, rx))  # an array of its own (read_readable)
+    device.compile_voxelizer(grid.VOXELIZE_COUNT_SLAB)
     layer = rx * ry
     layers = max(1, COUNT_SLAB_VOXELS // layer)
     buf = device.alloc_readable("model_voxel_counts", 4 * layer * min(layers, rz))
