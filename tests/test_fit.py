@@ -38,7 +38,7 @@ def test_predicted_bytes_equal_the_built_structure(device, scene_name, structure
     built = backends.build(device, structure, scene, params)
     try:
         bufs = _scene_buffers(device, scene)
-        counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
+        counts = voxel_counts(device, bufs, scene, built.geometry)
         allocated = {name: b["allocated"] for name, b in built.memory().items()}
         if backends.structure_info(structure).line_space:
             exact = predict_bytes(device, structure, counts, n, k, lists=ListSizes.of(built.stats))
@@ -77,7 +77,7 @@ def _counted_trace(device, structure, scene, rays, params, ls_n=None):
         per_ray = backends.trace(built, rays, work=True).work.astype(float)
         bufs = _scene_buffers(device, scene)
         try:
-            counts = voxel_counts(device, bufs, scene.triangle_count, built.geometry)
+            counts = voxel_counts(device, bufs, scene, built.geometry)
             sample = (line_space_samples(device, bufs, scene.triangle_count, built.geometry, counts, (ls_n,))[ls_n]
                       if ls_n else None)
         finally:
@@ -157,7 +157,7 @@ def test_drawn_rays_predict_a_heavy_tail_of_tests_without_bias():
     bufs = _scene_buffers(device, scene)
     try:
         geometry = backends.geometry_for("grid", scene, BuildParams(resolution=(32, 32, 2)), bounds=scene.bounds)
-        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        counts = voxel_counts(device, bufs, scene, geometry)
     finally:
         for b in bufs.values():
             device.release(b)
@@ -262,7 +262,7 @@ def test_walks_top_down_are_every_level_walked_whole(scene_name, structure, reso
     geometry = backends.geometry_for(structure, scene, BuildParams(resolution=resolution))
     bufs = _scene_buffers(device, scene)
     try:
-        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        counts = voxel_counts(device, bufs, scene, geometry)
     finally:
         for b in bufs.values():
             device.release(b)
@@ -321,10 +321,10 @@ def test_counts_read_in_slabs_are_the_whole_count_pass(monkeypatch, backend, sce
     rx, ry, rz = geometry.resolution
     bufs = _scene_buffers(device, scene)
     try:
-        whole = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        whole = voxel_counts(device, bufs, scene, geometry)
         monkeypatch.setattr(stats, "COUNT_DENSE_VOXELS", 0)
         monkeypatch.setattr(stats, "COUNT_SLAB_VOXELS", 5 * rx * ry)
-        slabs = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        slabs = voxel_counts(device, bufs, scene, geometry)
     finally:
         for b in bufs.values():
             device.release(b)

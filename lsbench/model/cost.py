@@ -656,7 +656,7 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
 
     def options_at(res) -> list[Option]:
         geometry = backends.geometry_for(structure, scene, BuildParams(resolution=res), bounds=(lo, hi))
-        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        counts = voxel_counts(device, bufs, scene, geometry)
         counts_of[res] = counts
         if not info.line_space:
             return [_option(device, structure, counts, sample, res, 0, 0, None, budget_bytes, constants)]
@@ -749,7 +749,7 @@ def bytes_at_least(device, structure: str, scene, params) -> tuple[int, bool]:
     bufs = {"vertices": device.upload("model_vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
             "faces": device.upload("model_faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
     try:
-        counts = voxel_counts(device, bufs, scene.triangle_count, geometry)
+        counts = voxel_counts(device, bufs, scene, geometry)
     finally:
         for b in bufs.values():
             device.release(b)
