@@ -742,6 +742,37 @@ def test_auto_walk_chooses_what_trying_every_resolution_chooses(structure, scene
     assert len(walked.options) < len(every.options)
 
 
+@pytest.mark.parametrize("structure", ["grid", "grid-ls"])
+def test_settings_over_the_budget_before_counting_are_not_counted(monkeypatch, structure):
+    """A grid's offsets (and grid-ls's Line Space index) take 4 bytes per voxel whatever the
+    counts, so a resolution whose voxels alone pass the budget is ruled out without its count
+    pass. Against the same choice with every resolution counted: the same setting chosen, and
+    each skipped one was over the budget there too."""
+    from lsbench.backends.structures.base import BuildParams as Params
+    from lsbench.model import cost
+
+    device = backends.get_device("opencl")
+    scene = load_scene("spheres")
+    rays, hit_t = _rays_and_truth(scene)
+    budget = (2 if structure == "grid" else 6) * 2**20
+    fixed = {"ls_n": 1, "ls_min_candidates": 0} if structure == "grid-ls" else {}
+    skipped = cost.choose(device, structure, scene, cost.ray_sample(rays, hit_t), budget_bytes=budget,
+                          exhaustive=True, **fixed)
+    monkeypatch.setattr(cost, "_bytes_whatever_the_counts", lambda *a: cost.BytesPrediction({}, False))
+    counted = cost.choose(device, structure, scene, cost.ray_sample(rays, hit_t), budget_bytes=budget,
+                          exhaustive=True, **fixed)
+    not_counted = {o.resolution for o in skipped.options} - set(skipped.counts_of)
+    assert not_counted and set(counted.counts_of) >= not_counted
+    for o in skipped.options:
+        if o.resolution in not_counted:
+            voxels = backends.geometry_for(structure, scene, Params(resolution=o.resolution)).voxel_count
+            assert not o.fits and o.bytes.total > budget and o.bytes.total >= 4 * voxels
+            assert o.summary()["predicted_rays_per_second"] is None
+    assert all(not o.fits for o in counted.options if o.resolution in not_counted)
+    assert skipped.chosen is not None and skipped.chosen == counted.chosen
+    assert skipped.record()["options_over_budget"] == counted.record()["options_over_budget"]
+
+
 def test_a_dense_cell_gets_its_line_space_on_llvmpipe_too():
     """llvmpipe cuts the loops of an invocation after 65535 iterations (test_grid.py); the Line
     Space count and fill run in chunks of candidates (linespace.py: candidate_chunk), so a cell of
