@@ -95,9 +95,9 @@ class VoxelCounts:
         return np.where(ids[i] == flat, values[i], 0).astype(np.uint32)
 
     def coarse(self, steps: int) -> np.ndarray:
-        """Non-zero where non-empty, for the cells of 2^steps x 2^steps x 2^steps voxels (those past
-        an odd extent cut by the box), as a (z, y, x) array: the counts themselves for steps = 0
-        when held whole (not copied), else booleans."""
+        """Non-zero where non-empty, for the cells of 2^steps x 2^steps x 2^steps voxels (the last
+        cell of an axis whose voxels do not divide evenly covers the rest), as a (z, y, x) array:
+        the counts themselves for steps = 0 when held whole (not copied), else booleans."""
         if self.counts is not None:
             occ = self.counts
             for _ in range(steps):

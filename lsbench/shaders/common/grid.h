@@ -8,6 +8,11 @@
 #if defined(KERNEL_voxelize_count) || defined(KERNEL_voxelize_fill)
 // ---- Voxelization: count pass (voxelize_count) and fill pass (voxelize_fill) ----------------
 // Both passes run the same overlap tests, so pass 2 writes exactly the counts of pass 1.
+// VOXEL_SLAB (count pass only): count the voxels of z layers [voxel_slab.x, voxel_slab.y) alone,
+// into a buffer of those layers. The cost model reads a large grid's counts slab by slab and keeps
+// only the non-empty voxels (model/stats.py: voxel_counts), so it never holds, nor first touches,
+// a buffer of the whole grid (235 MB at spheres' 512^3 octree). The overlap tests are the
+// full pass's, so each voxel's count is the one the build's count pass finds.
 INLINE void emit_voxel(CTX_PARAM uint voxel, uint tri) {
 #ifdef KERNEL_voxelize_fill
     uint slot = ATOMIC_ADD(V(voxel_cursor)[voxel], 1u);
@@ -19,12 +24,6 @@ INLINE void emit_voxel(CTX_PARAM uint voxel, uint tri) {
     ATOMIC_ADD(V(voxel_counts)[voxel], 1u);
 #endif
 }
-
-// VOXEL_SLAB (count pass only): count the voxels of z layers [voxel_slab.x, voxel_slab.y) alone,
-// into a buffer of those layers. The cost model reads a large grid's counts slab by slab and keeps
-// only the non-empty voxels (model/stats.py: voxel_counts), so it never holds, nor first touches,
-// a buffer of the whole grid (235 MB at spheres' 512^3 octree). The overlap tests are the
-// full pass's, so each voxel's count is the one the build's count pass finds.
 
 INLINE int overlaps_voxel(Triangle t, int3 cell, float eps) {
     float3 centre = make_float3(F32(cell.x) + 0.5f, F32(cell.y) + 0.5f, F32(cell.z) + 0.5f);
