@@ -657,11 +657,14 @@ def choose(device, structure: str, scene, sample: RaySample, resolution="auto", 
 
     def options_at(res) -> list[Option]:
         geometry = backends.geometry_for(structure, scene, BuildParams(resolution=res), bounds=(lo, hi))
-        floor = _bytes_whatever_the_counts(structure, geometry)
-        if budget_bytes is not None and floor.total > budget_bytes:
+        if budget_bytes is not None and not info.cubic_power_of_two:
             # Over the budget before any triangle is counted (the counts only add bytes): the
             # count pass is skipped (BMW grid 256^3 at 64 MiB: 0.44-0.54 s of a 1.3 s choice).
-            return [Option(res, n, ks[0], floor, Work(0.0, 0.0, 0.0, 0.0, 0.0), math.inf, False) for n in ns]
+            # Octrees are not asked: none of their bytes is per voxel.
+            floors = {n: _bytes_whatever_the_counts(device, structure, geometry, n) for n in ns}
+            if all(f.total > budget_bytes for f in floors.values()):
+                return [Option(res, n, ks[0], f, Work(0.0, 0.0, 0.0, 0.0, 0.0), math.inf, False)
+                        for n, f in floors.items()]
         counts = voxel_counts(device, bufs, scene, geometry)
         counts_of[res] = counts
         if not info.line_space:
@@ -713,17 +716,13 @@ def resolve_case(case, device, scene, rays, hit_t, budget_bytes: int | None):
     return (choice.params() if choice.chosen else None), choice
 
 
-def _bytes_whatever_the_counts(structure: str, geometry: GridGeometry) -> BytesPrediction:
-    """The bytes of `structure` at `geometry` that do not depend on the counts: a grid's offsets
-    (4 bytes per voxel) and grid-ls's voxel -> Line Space index too; an octree's bytes all follow
-    from its non-empty cells, so none. A lower bound (exact = False) of predict_bytes."""
-    info = STRUCTURES[structure]
-    if info.cubic_power_of_two:
-        return BytesPrediction({}, False)
-    per_voxel = {"voxel_offsets": 4 * (geometry.voxel_count + 1)}
-    if info.line_space:
-        per_voxel["ls_ids"] = 4 * (geometry.voxel_count + 1)
-    return BytesPrediction(per_voxel, False)
+def _bytes_whatever_the_counts(device, structure: str, geometry: GridGeometry, n: int) -> BytesPrediction:
+    """The bytes of `structure` at `geometry` (N = n) that do not depend on the counts: the
+    recipe's own prediction (predict_bytes) for a grid with no triangle, a lower bound (exact =
+    False) of its bytes at any counts (a grid's offsets, 4 bytes per voxel; grid-ls's voxel ->
+    Line Space index too)."""
+    empty = VoxelCounts(geometry, None, (np.zeros(0, np.int64), np.zeros(0, np.uint32)))
+    return BytesPrediction(predict_bytes(device, structure, empty, n, 0, lists=ListSizes(0, 0)).buffers, False)
 
 
 def _offsets_bytes(counts: VoxelCounts, n: int, k: int) -> int:

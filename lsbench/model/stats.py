@@ -269,16 +269,13 @@ def sample_cells(counts: VoxelCounts, size: int = LS_SAMPLE_CELLS, shafts: int =
     128^3 N=3, K = 16-64: docs/fit.md)."""
     non_empty, listed = counts.listed
     by_count = np.argsort(listed, kind="stable")
-    order, ordered = non_empty[by_count], listed[by_count]
-    cumulative = np.cumsum(ordered, dtype=np.float64)
+    order = non_empty[by_count]
+    cumulative = np.cumsum(listed[by_count], dtype=np.float64)
 
     def draw(k: int) -> tuple[np.ndarray, np.ndarray]:
-        at = np.minimum(np.searchsorted(cumulative, (np.arange(k) + 0.5) * (cumulative[-1] / k), side="right"),
-                        len(order) - 1)
-        picked, times = np.unique(at, return_counts=True)  # positions in count order, ascending
-        cells = order[picked]
-        keep = np.argsort(cells, kind="stable")
-        return cells[keep], (times / ordered[picked])[keep]
+        at = np.searchsorted(cumulative, (np.arange(k) + 0.5) * (cumulative[-1] / k), side="right")
+        cells, times = np.unique(order[np.minimum(at, len(order) - 1)], return_counts=True)
+        return cells, times / counts.at(cells)
 
     if len(order) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
