@@ -583,13 +583,18 @@ def test_fit_rounds_fit_every_round_together(tmp_path):
     assert all("fitted_seconds_per_ray" in c for c in cases)
 
 
-def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tmp_path, capsys):
+def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tmp_path, monkeypatch, capsys):
     """A tiny fit-check run (cornell, grid swept 4^3 and 64^3 with a budget that 64^3 passes, and
-    auto): `lsbench fit --check` names the auto setting, the best swept setting that fit (4^3:
-    64^3 failed over the budget) and their rays/s."""
+    auto): the run's progress line and summary name what auto built, and that it ranked with the
+    default constants (no `lsbench fit` here); `lsbench fit --check` and the report's "Auto
+    settings" section name the auto setting, the best swept setting that fit (4^3: 64^3 failed
+    over the budget) and their rays/s."""
     from lsbench.cli import main
-    from lsbench.model.check import check_rows
+    from lsbench.model.check import check_rows, setting_text
+    from lsbench.report.page import write_report
     from lsbench.results.store import read_run
+
+    monkeypatch.setenv("LSBENCH_FIT_DIR", str(tmp_path / "no-fit"))
 
     path = tmp_path / "fit-check.toml"
     path.write_text('name = "t"\n[run]\nwidth = 16\nheight = 16\nrepeats = 1\nembree_timing = false\n'
@@ -597,16 +602,24 @@ def test_fit_check_puts_each_auto_case_beside_the_best_swept_under_its_budget(tm
                     'backends = ["opencl"]\nresolutions = [4, 64, "auto"]\n')
     out = tmp_path / "run"
     assert main(["run", str(path), "--out", str(out), "--allow-failed"]) == 0
+    printed = capsys.readouterr().out
     _, records = read_run(out)
     over = next(r for r in records if r["resolution_x"] == 64)
     assert over["status"] == "failed" and "over the device-memory budget of 0.1 MiB" in over["reason"]
     (row,) = check_rows(records)
     assert row.best_setting == "4" and row.swept == 2 and row.auto_rays_per_second > 0
     assert row.ratio == pytest.approx(row.auto_rays_per_second / row.best_rays_per_second)
-    capsys.readouterr()
+    built = setting_text(row.auto_record)
+    assert f"auto chose {built} (predicted " in printed and "ranked with the default constants" in printed
+    assert f" auto: {built} " in printed  # the summary's res column
     assert main(["fit", "--check", str(out)]) == 0
     table = capsys.readouterr().out
     assert "auto/best" in table and "cornell  grid" in table
+    page = write_report(out).read_text()
+    section = page[page.index("<h2 id='auto'>"):]
+    section = section[:section.index("<h2", 5)]
+    assert "href='#auto'" in page and "1 of 1 auto cases ranked their settings with the documented default" in section
+    assert f"<td>{built}</td>" in section and "<td>4: " in section and "(best of 2)" in section and f"<td>{row.ratio:.2f}</td>" in section
 
 
 def test_fit_check_pairs_rerun_both_settings_alternated(tmp_path, capsys):

@@ -4,6 +4,7 @@ every table, opens from disk (no network, no JS).
 Results first, environment last (issue 18): one section per ray workload (a table of rays/s per
 structure with Embree's rays/s on the same rays as each scene's reference row, and a chart;
 issue 14), the thesis' (Delgado Krämer 2019, chapter 6) Tables 1-3 (lsbench/report/tables.py),
+what the cost model chose for the "auto" cases (lsbench/report/auto.py),
 rays/s against memory and against accuracy with their Pareto fronts, image accuracy (ΔE),
 build time against memory and the spread of the timing repeats (lsbench/report/charts.py), the
 heatmaps (lsbench/report/images.py), every case in detail, the full text of every failure, and
@@ -17,6 +18,7 @@ import shutil
 from collections import OrderedDict
 from pathlib import Path
 
+from lsbench.report.auto import auto_section
 from lsbench.report.charts import (chart_build_memory, chart_rays_memory, chart_repeats,
                                    chart_speed_accuracy, chart_workload)
 from lsbench.report.export import write_exports
@@ -292,6 +294,9 @@ def write_report(run_dir, out_dir=None) -> Path:
         body += _tables(tables, out_dir, "No Line Space cases in this run." if anchor == "table3"
                         else "No plain-structure cases in this run.")
 
+    auto = auto_section(records)
+    body += auto
+
     body.append("<h2 id='memory'>Speed against memory</h2>")
     body.append("<p>rays/s against the structure's bytes, one marker per case (colour: structure, "
                 "shape: backend). Ringed and labelled (structure, resolution, N): the Pareto front — "
@@ -325,7 +330,8 @@ def write_report(run_dir, out_dir=None) -> Path:
 
     title = f"lsbench report — {scenario_name(info) or run_dir.name}"
     nav = [*workload_nav, ("table1", "Table 1 FPS"), ("table2", "Table 2 memory"),
-           ("table3", "Table 3 Line Space"), ("memory", "Speed vs memory"), ("speed", "Speed vs accuracy"),
+           ("table3", "Table 3 Line Space"), *([("auto", "Auto settings")] if auto else []),
+           ("memory", "Speed vs memory"), ("speed", "Speed vs accuracy"),
            ("image", "Image ΔE"), ("build", "Build vs memory"), ("repeats", "Repeats"),
            ("heatmaps", "Heatmaps"), ("cases", "All cases"), ("env", "Environment")]
     out = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(str(title))}</title>",

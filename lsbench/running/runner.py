@@ -304,12 +304,39 @@ def progress_text(rec: dict) -> str:
     return (f"ok ({rec.get('wall_seconds') or 0:.1f} s{where}): agreement {rec['agreement']:.6f} "
             f"({rec.get('unexplained')} unexplained), "
             f"{rec['rays_per_second'] / 1e6:.2f} Mrays/s, {rec['memory_bytes'] / 2**20:.1f} MiB, "
-            f"build {rec['build_seconds']:.2f} s")
+            f"build {rec['build_seconds']:.2f} s{auto_text(rec)}")
+
+
+def auto_text(rec: dict) -> str:
+    """For an ok "auto" case: what the cost model chose, its prediction, and whether it ranked with
+    the default constants (lsbench/report/auto.py shows the whole choice)."""
+    from lsbench.model.check import setting_text
+    from lsbench.report.auto import used_default_constants
+
+    if not rec.get("auto") or rec.get("status") != "ok":
+        return ""
+    predicted = (rec.get("predicted") or {}).get("rays_per_second")
+    text = f"; auto chose {setting_text(rec)}" + (f" (predicted {predicted / 1e6:.2f} Mrays/s)" if predicted else "")
+    if used_default_constants(rec):
+        text += ", ranked with the default constants: run `lsbench fit` for this device's own"
+    return text
 
 
 def node_text(node: dict) -> str:
     """A record's `node` (the cluster node that ran it) in a few words."""
     return f"{node.get('host')} ({node.get('ip')}, node {str(node.get('id'))[:12]})"
+
+
+def _setting_columns(rec: dict) -> tuple[str, str]:
+    """The summary's res and N: as the case asked, and for an ok "auto" case what was built."""
+    res, n = str(rec.get("resolution")), str(rec.get("ls_n") or "-")
+    if rec.get("auto") and rec.get("status") == "ok" and rec.get("resolution_x") is not None:
+        dims = (rec["resolution_x"], rec["resolution_y"], rec["resolution_z"])
+        built = str(dims[0]) if len(set(dims)) == 1 else "x".join(map(str, dims))
+        res = built if res == built else f"{res}: {built}"
+        if rec.get("ls_n"):
+            n = f"{rec['ls_n']} K={rec.get('ls_min_candidates') or 0}"
+    return res, n
 
 
 def summary_table(records: list[dict]) -> str:
@@ -325,7 +352,7 @@ def summary_table(records: list[dict]) -> str:
         ok = r.get("status") == "ok"
         rows.append([
             scene_name(r), f"{r.get('rays')}@{r.get('width')}x{r.get('height')}", r.get("structure"),
-            r.get("backend"), str(r.get("resolution")), str(r.get("ls_n") or "-"),
+            r.get("backend"), *_setting_columns(r),
             "ok" if ok else "FAILED",
             f"{r['agreement']:.6f}" if ok else "-",
             f"{r['rays_per_second'] / 1e6:.3f}" if ok else "-",
