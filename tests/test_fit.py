@@ -530,7 +530,7 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     from lsbench.commands import fit
 
     assert main(["fit", "--backends", "opencl", "--scenes", "cornell", "--size", "16x16", "--repeats", "1",
-                 "--out-dir", str(tmp_path)]) == 0
+                 "--rounds", "1", "--out-dir", str(tmp_path)]) == 0  # the rounds: the next test
     files = list(tmp_path.glob("opencl-*.json"))
     assert len(files) == 1
     data = json.loads(files[0].read_text())
@@ -567,11 +567,13 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
 
 def test_fit_rounds_fit_every_round_together(tmp_path):
     """`lsbench fit --rounds 2` runs every calibration case twice, one round after the other, and
-    stores both rounds' cases, fitted together."""
+    stores both rounds' cases, fitted together; without --rounds it pools DEFAULT_ROUNDS (4)."""
     import json
 
-    from lsbench.cli import main
+    from lsbench.cli import build_parser, main
     from lsbench.commands import fit
+
+    assert build_parser().parse_args(["fit"]).rounds == fit.DEFAULT_ROUNDS == 4
 
     assert main(["fit", "--backends", "opencl", "--scenes", "cornell", "--size", "8x8", "--repeats", "1",
                  "--rounds", "2", "--out-dir", str(tmp_path)]) == 0

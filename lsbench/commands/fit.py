@@ -40,6 +40,13 @@ CALIBRATION = (
 # launch cost 4-12 ms (two runs on each backend, 2026-12-02), 250-750 ns of each of 16,384 rays.
 LAUNCH_CALIBRATION = (("grid", "64", 0, 0), ("esvo", "128", 0, 0))
 LAUNCH_SCALE = 2
+# Rounds of the calibration fitted together by default. One round's constants moved by tens of
+# percent between runs (the lookup on PoCL from 1.8 ns to 0), and the auto choices with them: on the
+# 2-core machine (2026-12-04) four rounds changed 17 of the 24 Line Space cells' choices of
+# fit-thesis.toml against one round, and every changed choice traced as fast or faster (0.75-1.03 of
+# the time, paired), with no plain cell changed (docs/fit.md). About 7 minutes on llvmpipe and 1.5 on
+# PoCL there.
+DEFAULT_ROUNDS = 4
 
 
 def setup_arguments(sub) -> None:
@@ -53,10 +60,10 @@ def setup_arguments(sub) -> None:
     p.add_argument("--size", type=checked_text(parse_size), default=DEFAULT_SIZE,
                    help=f"image size WxH (camera rays; default {DEFAULT_SIZE})")
     p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=3, help="timed launches per case")
-    p.add_argument("--rounds", type=RUN_RULES["repeats"].flag, default=1, metavar="R",
+    p.add_argument("--rounds", type=RUN_RULES["repeats"].flag, default=DEFAULT_ROUNDS, metavar="R",
                    help="run the calibration cases R times over, one round after the other, and fit on all "
                         "of them (one round's constants moved by tens of percent between runs on a 2-core "
-                        "machine: the defaults pool four, docs/fit.md)")
+                        f"machine, and the choices with them: docs/fit.md; default {DEFAULT_ROUNDS})")
     p.add_argument("--out-dir", type=writable_folder, metavar="DIR",
                    help="where the constants go (default $LSBENCH_FIT_DIR or ~/.cache/lsbench/fit)")
     p.add_argument("--json", action="store_true", help="print the stored constants as JSON")
