@@ -81,12 +81,18 @@ def x_embree(rec: dict) -> float | None:
     return rec["rays_per_second"] / embree if embree and rec.get("rays_per_second") else None
 
 
+def setting_of(dims, n=0, k=0) -> str:
+    """A setting in a few words: "128" (cubic) or "103x43x63", then " N=3 K=16" for a Line Space."""
+    dims = tuple(int(d) for d in dims)
+    text = str(dims[0]) if len(set(dims)) == 1 else "x".join(map(str, dims))
+    return text + (f" N={n} K={k or 0}" if n else "")
+
+
 def setting_text(rec: dict) -> str:
     if rec.get("resolution_x") is None:
         return "-"
-    res = (rec["resolution_x"], rec["resolution_y"], rec["resolution_z"])
-    text = str(res[0]) if len(set(res)) == 1 else "x".join(map(str, res))
-    return text + (f" N={rec['ls_n']} K={rec['ls_min_candidates']}" if rec.get("ls_n") else "")
+    return setting_of((rec["resolution_x"], rec["resolution_y"], rec["resolution_z"]), rec.get("ls_n"),
+                      rec.get("ls_min_candidates"))
 
 
 def check_rows(records: list[dict]) -> list[CheckRow]:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import html
 
-from lsbench.model.check import check_rows, setting_text
+from lsbench.model.check import check_rows, setting_of, setting_text
 from lsbench.report.records import scene_name, succeeded
 
 e = html.escape
@@ -25,27 +25,27 @@ def used_default_constants(rec: dict) -> bool:
     return str((rec.get("auto") or {}).get("constants", "")).startswith("defaults")
 
 
+def option_setting(option: dict) -> str:
+    """The setting of one option of a choice (Option.summary: resolution "RxRyRz", ls_n, ...)."""
+    return setting_of(option["resolution"].split("x"), option.get("ls_n"), option.get("ls_min_candidates"))
+
+
 def option_text(option: dict) -> str:
     """One option of a choice ("chosen" or a runner-up) in a few words."""
-    res = str(option.get("resolution", "?"))
-    dims = res.split("x")
-    res = dims[0] if len(set(dims)) == 1 else res
-    if option.get("ls_n"):
-        res += f" N={option['ls_n']} K={option.get('ls_min_candidates', 0)}"
     rate = option.get("predicted_rays_per_second")
     mib = option.get("predicted_bytes")
     parts = [f"{rate / 1e6:.3f} Mrays/s" if rate else "no rate",
              f"{'' if option.get('bytes_exact') else '~'}{mib / 2**20:.1f} MiB" if mib is not None else "? MiB"]
     if option.get("fits_budget") is False:
         parts.append("over the budget")
-    return f"{res}: {', '.join(parts)}"
+    return f"{option_setting(option)}: {', '.join(parts)}"
 
 
 def _rebuilt_text(auto: dict) -> str:
     """The options built first and found over the budget (a Line Space's bytes are estimated from a
     sample of cells; model/cost.py), which the case then passed over for the next that fits."""
     over = auto.get("rebuilt_over_budget") or []
-    return "".join(f"; first built {option_text(o).split(':')[0]} at {o['built_bytes'] / 2**20:.1f} MiB, "
+    return "".join(f"; first built {option_setting(o)} at {o['built_bytes'] / 2**20:.1f} MiB, "
                    "over the budget" for o in over if o.get("built_bytes") is not None)
 
 
@@ -83,6 +83,7 @@ def auto_section(records: list[dict]) -> list[str]:
         predicted = chosen.get("predicted_rays_per_second")
         measured = r.get("rays_per_second") if ok else None
         constants = str(a.get("constants", "?"))
+        defaults_used = used_default_constants(r)
         row = checks.get(id(r))
         best = ("-" if row is None or row.best_setting is None else
                 f"{row.best_setting}: {row.best_rays_per_second / 1e6:.3f} Mrays/s (best of {row.swept})")
@@ -90,7 +91,7 @@ def auto_section(records: list[dict]) -> list[str]:
             scene_name(r), f"{r.get('rays')}@{r.get('width')}x{r.get('height')}", r.get("structure"), r.get("backend"),
             _num(a.get("budget_bytes") and a["budget_bytes"] / 2**20, "g"),
             (setting_text(r) if ok else (option_text(chosen) if chosen else "none fits")) + _rebuilt_text(a),
-            "defaults (run lsbench fit)" if used_default_constants(r) else constants.rsplit("/", 1)[-1],
+            "defaults (run lsbench fit)" if defaults_used else constants.rsplit("/", 1)[-1],
             _num(predicted and predicted / 1e6, ".3f"), _num(measured and measured / 1e6, ".3f"),
             _num(measured / predicted if measured and predicted else None, ".2f"),
             (f"{'' if chosen.get('bytes_exact') else '~'}{chosen['predicted_bytes'] / 2**20:.1f}"
@@ -100,9 +101,9 @@ def auto_section(records: list[dict]) -> list[str]:
             _num(a.get("choose_seconds"), ".1f"),
             "; ".join(option_text(o) for o in (a.get("runners_up") or [])[:RUNNERS_UP]) or "-",
             best, _num(row.ratio if row else None, ".2f"),
-            "-" if row is None or row.choose_share is None or not row.swept else f"{100 * row.choose_share:.1f} %",
+            "-" if row is None or row.choose_share is None else f"{100 * row.choose_share:.1f} %",
         ]
-        cls = "fail" if not ok else ("warn" if used_default_constants(r) else "")
+        cls = "fail" if not ok else ("warn" if defaults_used else "")
         out.append(f"<tr class='{cls}' title='{e(r.get('key', ''))}'>"
                    + "".join(f"<td>{e(str(c))}</td>" for c in cells) + "</tr>")
     out.append("</table></div>")

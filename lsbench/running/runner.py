@@ -329,10 +329,11 @@ def node_text(node: dict) -> str:
 
 def _setting_columns(rec: dict) -> tuple[str, str]:
     """The summary's res and N: as the case asked, and for an ok "auto" case what was built."""
+    from lsbench.model.check import setting_of
+
     res, n = str(rec.get("resolution")), str(rec.get("ls_n") or "-")
     if rec.get("auto") and rec.get("status") == "ok" and rec.get("resolution_x") is not None:
-        dims = (rec["resolution_x"], rec["resolution_y"], rec["resolution_z"])
-        built = str(dims[0]) if len(set(dims)) == 1 else "x".join(map(str, dims))
+        built = setting_of((rec["resolution_x"], rec["resolution_y"], rec["resolution_z"]))
         res = built if res == built else f"{res}: {built}"
         if rec.get("ls_n"):
             n = f"{rec['ls_n']} K={rec.get('ls_min_candidates') or 0}"
