@@ -535,6 +535,7 @@ def test_fit_measures_and_stores_constants_that_auto_cases_then_use(tmp_path, mo
     assert len(files) == 1
     data = json.loads(files[0].read_text())
     assert len(data["cases"]) == len(fit.CALIBRATION) + len(fit.LAUNCH_CALIBRATION)
+    assert data["size"] == "16x16"
     assert all(c["seconds_per_ray"] > 0 for c in data["cases"])
     # the launch cases ran with LAUNCH_SCALE^2 times the rays, so launch and ray come apart
     assert sorted({c["rays"] for c in data["cases"]}) == [16 * 16, 16 * 16 * fit.LAUNCH_SCALE**2]
@@ -574,6 +575,9 @@ def test_fit_rounds_fit_every_round_together(tmp_path):
     from lsbench.commands import fit
 
     assert build_parser().parse_args(["fit"]).rounds == fit.DEFAULT_ROUNDS == 4
+    # without --size each backend calibrates at its own size (PoCL's 128x128 cases were too noisy)
+    assert build_parser().parse_args(["fit"]).size is None
+    assert fit.DEFAULT_SIZES == {"glsl": "128x128", "opencl": "512x512"}
 
     assert main(["fit", "--backends", "opencl", "--scenes", "cornell", "--size", "8x8", "--repeats", "1",
                  "--rounds", "2", "--out-dir", str(tmp_path)]) == 0

@@ -22,18 +22,31 @@ from lsbench.inputs.scenario import RUN_RULES
 NAME = "fit"
 HELP = "measure the cost model's constants per device (for \"auto\" settings) and store them"
 DEFAULT_SCENES = ("atrium", "spheres")
-DEFAULT_SIZE = "128x128"
+# The calibration's image per backend (--size overrides it). Each case's device time per ray must
+# stand for the same case at the sizes auto cases trace (512x512 in fit-thesis.toml). On PoCL it
+# did not at 128x128: on the 2-core machine (2026-12-04) a case took 1.5-3 times its time per ray at
+# 512x512 (atrium grid 128^3: 1729 against 601 ns), K = 0 against K = 16 of one Line Space came out
+# either way by up to 30 % from one round to the next, and the fit put the grid-ls step at the plain
+# grid's 2.37 ns, where the atrium's own settings at 512x512 gave 3.0-4.0 ns; auto then took
+# 98 x 43 x 49 N=3 on the atrium, where 61 x 27 x 31 traces in 0.82 of its time. At 512x512 the fit's
+# residual fell from 18 to 10 % and that choice, with six others, traced as fast or faster (docs/fit.md).
+# llvmpipe's cases at 128x128 already take 60-250 ms (4-15 us a ray) and fit within 10 %; at 512x512
+# its four rounds would take half an hour.
+DEFAULT_SIZES = {"glsl": "128x128", "opencl": "512x512"}
 # (structure, resolution, N, K): steps, tests and lookups in different proportions, so the fit can
 # tell the constants apart, in the range where the auto choice decides (5-250 candidate tests per
 # ray on the two scenes, not the 500-1000 of a 4^3 or 16^3 grid, whose long lists cost less per
 # test and pulled the test constant down: docs/fit.md, "The constants"); each Line Space structure
 # at K = 0 (a lookup in every non-empty cell) and K = 16 (fewer lookups, more list tests on the
-# same walk), so its own step constant and the lookup's come apart.
+# same walk), and at 128^3 N=1 K=0 (two to four times the steps of its other cases, a lookup in every
+# non-empty cell), so its own step constant and the lookup's come apart (without the 128^3 cases the
+# PoCL fit put every Line Space step at its plain walk's: docs/fit.md).
 CALIBRATION = (
     ("grid", "32", 0, 0), ("grid", "64", 0, 0), ("grid", "128", 0, 0),
     ("svo", "64", 0, 0), ("svo", "128", 0, 0), ("esvo", "64", 0, 0), ("esvo", "128", 0, 0),
     ("grid-ls", "32", 2, 0), ("grid-ls", "32", 2, 16), ("grid-ls", "64", 2, 0),
     ("svo-ls", "64", 2, 0), ("svo-ls", "64", 2, 16), ("esvo-ls", "64", 2, 0), ("esvo-ls", "64", 2, 16),
+    ("grid-ls", "128", 1, 0), ("svo-ls", "128", 1, 0), ("esvo-ls", "128", 1, 0),
 )
 # Run again with LAUNCH_SCALE^2 times the rays, so the launch's fixed cost (shared by its rays)
 # comes apart from a ray's: at one size the two are one column. On the development machine a
@@ -44,8 +57,8 @@ LAUNCH_SCALE = 2
 # percent between runs (the lookup on PoCL from 1.8 ns to 0), and the auto choices with them: on the
 # 2-core machine (2026-12-04) four rounds changed 17 of the 24 Line Space cells' choices of
 # fit-thesis.toml against one round, and every changed choice traced as fast or faster (0.75-1.03 of
-# the time, paired), with no plain cell changed (docs/fit.md). About 7 minutes on llvmpipe and 1.5 on
-# PoCL there.
+# the time, paired), with no plain cell changed (docs/fit.md). With DEFAULT_SIZES and the 128^3 N=1
+# cases, 14 min 46 s for both backends there (llvmpipe about 10, PoCL about 5).
 DEFAULT_ROUNDS = 4
 
 
@@ -57,8 +70,9 @@ def setup_arguments(sub) -> None:
                    metavar="BACKEND", help=f"devices to calibrate (default: {', '.join(backends.BACKENDS)})")
     p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="SCENE",
                    help=f"calibration scenes (default: {', '.join(DEFAULT_SCENES)})")
-    p.add_argument("--size", type=checked_text(parse_size), default=DEFAULT_SIZE,
-                   help=f"image size WxH (camera rays; default {DEFAULT_SIZE})")
+    p.add_argument("--size", type=checked_text(parse_size),
+                   help="image size WxH (camera rays; default per backend: "
+                        + ", ".join(f"{b} {s}" for b, s in DEFAULT_SIZES.items()) + ")")
     p.add_argument("--repeats", type=RUN_RULES["repeats"].flag, default=3, help="timed launches per case")
     p.add_argument("--rounds", type=RUN_RULES["repeats"].flag, default=DEFAULT_ROUNDS, metavar="R",
                    help="run the calibration cases R times over, one round after the other, and fit on all "
@@ -81,7 +95,8 @@ def setup_arguments(sub) -> None:
 def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=say, rounds: int = 1) -> dict:
     """Run the calibration cases on `backend`, all of them `rounds` times over, one round after the
     other, and fit the constants on every round's cases together; returns the file's contents
-    (model/constants.py) with the fitted constants, each case, and the fit's relative rms residual."""
+    (model/constants.py) with the fitted constants, each case, the fit's relative rms residual and
+    the image size."""
     from lsbench.inputs.rays import make_rays
     from lsbench.inputs.scenario import Case, RunSettings
     from lsbench.inputs.scenes import load_scene
@@ -130,7 +145,7 @@ def calibrate(backend: str, scenes, width: int, height: int, repeats: int, log=s
             "made": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "launch": c["launch"], "ray": c["ray"], "step": steps_from_fit(c),
             "test": c["test"], "lookup": c["lookup"], "simd_width": simd_width, "residual": residual,
-            "cases": cases}
+            "size": f"{width}x{height}", "cases": cases}
 
 
 def _issued(mean: float, efficiency: float | None) -> float:
@@ -149,11 +164,11 @@ def run(args) -> int:
         return print_check(args.check, args.pairs or 0)
     if args.pairs:
         raise UsageError("--pairs: only with --check RUN_DIR")
-    width, height = parse_size(args.size)
     out = []
     for backend in args.backends:
+        width, height = parse_size(args.size or DEFAULT_SIZES[backend])
         say(f"lsbench fit: {backend}, {(len(CALIBRATION) + len(LAUNCH_CALIBRATION)) * len(args.scenes)} "
-            f"calibration cases" + (f", {args.rounds} rounds" if args.rounds > 1 else ""))
+            f"calibration cases at {width}x{height}" + (f", {args.rounds} rounds" if args.rounds > 1 else ""))
         data = calibrate(backend, args.scenes, width, height, args.repeats, rounds=args.rounds)
         path = save_constants(data, backend, data["device"], Path(args.out_dir) if args.out_dir else None)
         say(f"{backend} ({data['device']}): launch {data['launch'] * 1e3:.2f} ms, ray {data['ray'] * 1e9:.1f} ns, "
