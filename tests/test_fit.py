@@ -46,7 +46,8 @@ def test_predicted_bytes_equal_the_built_structure(device, scene_name, structure
             estimate = predict_bytes(device, structure, counts, n, k, sample=sample)
             assert not estimate.exact
             truth = built.stats["ls_set_references"]  # the distinct sets' ids: what ls_shaft_tris holds
-            assert 0.5 * truth <= estimate.buffers["ls_shaft_tris"] / 4 <= 2 * truth
+            id_bytes = built.stats["ls_id_bits"] // 8
+            assert 0.5 * truth <= estimate.buffers["ls_shaft_tris"] / id_bytes <= 2 * truth
         else:
             exact = predict_bytes(device, structure, counts)
         assert exact.exact

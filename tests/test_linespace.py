@@ -96,13 +96,19 @@ def segments_hit(p, q, tris) -> np.ndarray:
 
 
 def read_linespaces(built):
-    """ls_ids and the shafts' lists expanded to one per shaft (CSR offsets, candidates), decoded
-    from the shared-sets layout as the traversal reads it (linespace.shaft_lists)."""
+    """ls_ids and the shafts' lists expanded to one per shaft (CSR offsets, triangle ids), decoded
+    from the shared-sets layout as the traversal reads it (linespace.shaft_lists): each Line Space's
+    ids index its cell's plain list (a voxel's in grid-ls, a leaf's in svo-ls / esvo-ls)."""
     d = built.device
+    read = lambda name: d.read(built.buffers[name], np.uint32).astype(np.int64)
+    ls_ids = read("ls_ids")
+    list_begins = read("leaves")[0::2] if "leaves" in built.buffers else read("voxel_offsets")[:-1]
+    cell_begins = list_begins[np.flatnonzero(np.diff(ls_ids))]  # in Line Space order: ls_ids ascends
     offsets, candidates = linespace.shaft_lists(linespace.read_array(d, built.buffers, "ls_shaft_offsets"),
                                                 linespace.read_array(d, built.buffers, "ls_shaft_tris"),
-                                                built.stats["shafts_per_cell"])
-    return d.read(built.buffers["ls_ids"], np.uint32).astype(np.int64), offsets, candidates
+                                                built.stats["shafts_per_cell"], built.stats["ls_id_bits"],
+                                                cell_begins, read("voxel_tris"))
+    return ls_ids, offsets, candidates
 
 
 @pytest.mark.parametrize("n,test_kind", [(1, None), (2, "clip"), (2, "sat"), (2, "edges"), (3, None), (3, "edges")])
@@ -485,10 +491,16 @@ def test_buffer_limit_raises_naming_it(device, monkeypatch):
 
 
 @pytest.mark.parametrize("structure", ["grid-ls", "svo-ls", "esvo-ls"])
-@pytest.mark.parametrize("size,limit", [(0.5, 8192), (0.3, 6144), (0.5, 6144)])  # 2, 3, 4 buffers
-def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, structure, size, limit):
+@pytest.mark.parametrize("size,limit,id_bits", [(0.5, 8192, 32), (0.3, 6144, 32), (0.5, 6144, 32),  # 2, 3, 4 buffers
+                                                (0.5, 6144, 16)])  # 2 buffers of 16-bit ids
+def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, structure, size, limit, id_bits):
     """A candidate list past the per-buffer limit is split over several buffers (up to 4) and
-    traces exactly as the whole list; past 4 buffers the case fails naming the limit."""
+    traces exactly as the whole list; past 4 buffers the case fails naming the limit. 32-bit ids
+    (forced: these cells are far under 65,536 candidates) make lists long enough for 4 buffers
+    that still hold every other buffer of the case; 16-bit ids ORed across a buffer boundary
+    (linespace.h ls_put_candidate) are checked with 2."""
+    if id_bits == 32:
+        monkeypatch.setattr(linespace, "LS_IDS16_MAX_CANDIDATES", 0)
     # Every other buffer of the case stays under `limit`: the triangle records (48 bytes per
     # triangle) and the slice state (68 bytes per ray where the trace runs in slices). The "edges"
     # exact test's table of shaft edges (912 bytes per shaft, 13,680 at N=1) would not: the split
@@ -499,7 +511,8 @@ def test_candidates_split_over_buffers_past_the_limit(device, monkeypatch, struc
     params = BuildParams(resolution=(4, 4, 4), ls_n=1)
     whole = backends.build(device, structure, scene, params)
     whole_hits = backends.trace(whole, rays)
-    candidates = whole.stats["ls_set_references"]  # the distinct sets' ids: what ls_shaft_tris holds
+    assert whole.stats["ls_id_bits"] == id_bits
+    candidates = linespace.candidate_words(whole.stats["ls_set_references"], id_bits)  # the words ls_shaft_tris holds
     whole.release()
     monkeypatch.setattr(type(device), "max_buffer_bytes", property(lambda self: limit))
     split = backends.build(device, structure, scene, params)

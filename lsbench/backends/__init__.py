@@ -101,8 +101,7 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
         stats["build_kernel_seconds"] = kernel_seconds
     defect = os.environ.get("LSBENCH_PLANT_DEFECT", "")
     if defect.startswith(("drop-reference", "drop-triangle")):
-        _plant_dropped_triangle(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None,
-                                line_spaces=defect.startswith("drop-triangle"))
+        _plant_dropped_triangle(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
     return Built(structure, device, params, geometry, scene_buffers, result.buffers, result.uniforms,
                  result.trace_spec, build_seconds=seconds, stats=stats)
 
@@ -431,16 +430,16 @@ def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, wi
     return _run_slices(d, sliced(spec), n, bufs, built.uniforms, budget, launch, first)
 
 
-def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None, line_spaces: bool) -> None:
+def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | None) -> None:
     """Test-only fault injection, so tests can show that the gate catches a structure that lost a
-    candidate. LSBENCH_PLANT_DEFECT=drop-reference[:TRI]: triangle TRI (default the one listed in
-    most voxels) leaves every voxel list (voxel_tris: grid, the octrees' leaves, and the voxels of
-    a Line Space structure that have none); drop-triangle[:TRI] also leaves every Line Space shaft
-    list (ls_shaft_tris*), the same mutation for every structure. Its entries are overwritten by
-    another triangle. (Dropping it from one voxel only is no defect any more: the traversals keep
-    a hit found in an earlier voxel that lists the triangle, shaders/common/grid.h.)"""
-    lists = [name for name in buffers
-             if name == "voxel_tris" or (line_spaces and name.startswith("ls_shaft_tris"))]
+    candidate. LSBENCH_PLANT_DEFECT=drop-reference[:TRI] or drop-triangle[:TRI]: triangle TRI
+    (default the one listed in most voxels) leaves every voxel list (voxel_tris: grid, the octrees'
+    and the BVH's leaves, the cells of a Line Space structure), its entries overwritten by another
+    triangle. The two names are one mutation now: a Line Space shaft lists positions in its cell's
+    plain list (shaders/common/linespace.h), so the triangle leaves every shaft with it, the same
+    mutation for every structure. (Dropping it from one voxel only is no defect any more: the
+    traversals keep a hit found in an earlier voxel that lists the triangle, shaders/common/grid.h.)"""
+    lists = [name for name in buffers if name == "voxel_tris"]
     if victim is None:
         victim = int(np.argmax(np.bincount(device.read(buffers["voxel_tris"], np.uint32))))
     other = (victim + 1) % scene.triangle_count

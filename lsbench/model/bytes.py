@@ -5,7 +5,8 @@ beside the code that allocates it).
 Exact (equal to Built.memory_bytes, tests/test_fit.py): grid, svo, esvo from the count pass, and
 every buffer of the Line Space structures except what their distinct candidate sets take (one list
 per distinct set of a cell, linespace.h): the sets' offsets (in ls_shaft_offsets, beside the exact
-per-cell part) and their triangle ids (ls_shaft_tris). Before the build those are estimates: the
+per-cell part) and their cell-local candidate ids (ls_shaft_tris, 16 bits where the densest cell
+holds at most 65,536 candidates). Before the build those are estimates: the
 sets and set ids per reference of a sample of cells (stats.LineSpaceSample) times the references of
 the cells that get a Line Space; given the build's counts (linespace.ListSizes.of(stats)) they are
 exact. `exact` says which the prediction is.
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 
 from lsbench.backends.device import Device
 from lsbench.backends.structures import STRUCTURES, grid, grid_ls, svo
-from lsbench.backends.structures.linespace import ListSizes
+from lsbench.backends.structures.linespace import ListSizes, candidate_id_bits
 from lsbench.model.stats import LineSpaceSample, VoxelCounts
 
 
@@ -28,6 +29,14 @@ class BytesPrediction:
     @property
     def total(self) -> int:
         return int(sum(self.buffers.values()))
+
+    @property
+    def estimated_bytes(self) -> int:
+        """What a Line Space prediction estimates from its sample: the sets' ids (ls_shaft_tris,
+        with the buffers it is split over); 0 when exact."""
+        if self.exact:
+            return 0
+        return int(sum(v for k, v in self.buffers.items() if k.startswith("ls_shaft_tris")))
 
 
 def predict_bytes(device: Device, structure: str, counts: VoxelCounts, n: int = 0, k: int = 0,
@@ -50,10 +59,9 @@ def predict_bytes(device: Device, structure: str, counts: VoxelCounts, n: int = 
         if sample is None:
             raise ValueError(f"{structure}: a Line Space prediction needs a sample or the built sets' sizes")
         sets, set_refs = sample.lists_per_reference(k)
-        lists = ListSizes(round(sets * ls_refs), round(set_refs * ls_refs))
+        lists = ListSizes(round(sets * ls_refs), round(set_refs * ls_refs), candidate_id_bits(counts.densest))
     if octree:
         buffers = info.recipe.predicted_bytes(device, nodes, leaves, counts.references, ls_cells, n, lists)
     else:
-        buffers = grid_ls.predicted_bytes(device, counts.voxels, counts.references, counts.non_empty,
-                                          ls_cells, n, lists)
+        buffers = grid_ls.predicted_bytes(device, counts.voxels, counts.references, ls_cells, n, lists)
     return BytesPrediction(buffers, exact)

@@ -523,15 +523,20 @@ class Choice:
     def next_after_overshoot(self, built_bytes: int, build_seconds: float) -> bool:
         """The chosen Line Space setting was built over the budget (its shaft lists are estimated
         from a sample: tens of percent off): take the cheapest other option that fits once its
-        prediction is scaled by the same error. False when there is none, or after
+        estimated part (the lists' ids) is scaled by the same error. False when there is none, or after
         AUTO_REBUILDS such rebuilds (the case then fails over the budget, naming them)."""
         failed = self.chosen
         self.rebuilt.append(dict(failed.summary(), built_bytes=int(built_bytes), build_seconds=build_seconds))
         if self.budget_bytes is None or len(self.rebuilt) > AUTO_REBUILDS:
             return False
-        scale = built_bytes / max(failed.bytes.total, 1)
+        # What the sample estimates is mostly the lists' ids (ls_shaft_tris; the sets' offsets are a word per set).
+        estimated = failed.bytes.estimated_bytes
+        fixed = failed.bytes.total - estimated
+        scale = (built_bytes - fixed) / estimated if estimated > 0 else built_bytes / max(failed.bytes.total, 1)
+        scaled = (lambda o: o.bytes.total + o.bytes.estimated_bytes * (max(scale, 1.0) - 1.0)) if estimated > 0 \
+            else (lambda o: o.bytes.total * max(scale, 1.0))
         tried = {(r["resolution"], r["ls_n"], r["ls_min_candidates"]) for r in self.rebuilt}
-        left = [o for o in self.options if o.fits and o.bytes.total * max(scale, 1.0) <= self.budget_bytes
+        left = [o for o in self.options if o.fits and scaled(o) <= self.budget_bytes
                 and (o.summary()["resolution"], o.ls_n, o.ls_min_candidates) not in tried]
         if not left:
             return False

@@ -57,8 +57,9 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     device.dispatch(GLS_CELLS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_ids": ls_ids,
                                       "ls_cell_boxes": boxes, "ls_cell_ranges": ranges}, u)
     cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
-    # What the structure keeps besides its Line Spaces (the plain lists shrink below when unread).
-    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + (4 if n_cells == non_empty else buffers["voxel_tris"].nbytes)
+    # What the structure keeps besides its Line Spaces: the plain lists stay, also where every
+    # non-empty voxel has a Line Space, since its shafts' ids are positions in them (linespace.h).
+    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + buffers["voxel_tris"].nbytes
     try:
         ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
     except Exception:
@@ -69,10 +70,6 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     device.release(ranges)
     buffers["ls_ids"] = ls_ids
     buffers.update(ls.buffers)
-    if n_cells == non_empty:
-        # Every non-empty voxel reads its Line Space: the plain lists are never read again.
-        device.release(buffers["voxel_tris"])
-        buffers["voxel_tris"] = device.alloc("voxel_tris", 4)
     stats.update(ls.stats)
     stats.update(linespace.selection_stats(ls, non_empty, k))
     stats.update({
@@ -84,14 +81,12 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     return BuildResult(buffers, u, ls.trace_spec(TRACE_GRID_LS), stats)
 
 
-def predicted_bytes(device: Device, voxels: int, references: int, non_empty: int, ls_cells: int,
+def predicted_bytes(device: Device, voxels: int, references: int, ls_cells: int,
                     n: int, lists: linespace.ListSizes) -> dict[str, int]:
-    """The bytes of each buffer build returns (lsbench/model/bytes.py): the grid's lists (the
-    plain list shrinks to 4 bytes when every non-empty voxel has a Line Space), the voxel -> Line
-    Space index, and the Line Spaces of `ls_cells` voxels whose distinct sets are `lists`."""
+    """The bytes of each buffer build returns (lsbench/model/bytes.py): the grid's lists (which
+    the Line Spaces' cell-local ids index), the voxel -> Line Space index, and the Line Spaces of
+    `ls_cells` voxels whose distinct sets are `lists`."""
     out = grid.predicted_bytes(voxels, references)
-    if ls_cells == non_empty:
-        out["voxel_tris"] = 4
     out["ls_ids"] = 4 * (voxels + 1)
     out.update(linespace.predicted_bytes(device, ls_cells, n, lists))
     return out

@@ -12,9 +12,13 @@ box (grid space, see shaders/common/grid.h) plus a range of a triangle-id list:
                      whether the 32-bit overflow check has to run)
     ls = build_linespaces(device, scene_buffers, geometry, cells, n)
     ls.buffers -> {"ls_shaft_offsets": header, per-cell first sets, 8/16-bit shaft -> set indices,
-                   set offsets; "ls_shaft_tris": the distinct sets' candidate ids}
+                   set offsets; "ls_shaft_tris": the distinct sets' candidates, each the
+                   position of its triangle in the cell's own list (`ranges` into `tris`, which
+                   the structure keeps and its traversal reads), 16 bits where no cell holds more
+                   than 65,536 candidates (ls_id_bits), else 32}
     ls.stats   -> shafts, non_empty_shafts, candidate_references (all shafts' lists together),
-                  ls_sets, ls_set_references (what is stored: one list per distinct set), ...
+                  ls_sets, ls_set_references (what is stored: one list per distinct set),
+                  ls_id_bits, ...
 
 Shaft s of cell c has the list of its set (layout: shaders/common/linespace.h, read by trace.h's
 shaft_list; on the host by shaft_ranges / shaft_lists below): 92-95 % of a cell's non-empty
@@ -117,6 +121,19 @@ LS_GROUP_SHAFTS = 1 << 22
 LS_HASH_MASK = 0xFFFFFFFF
 # The shaft -> set index is 16 bits wide (linespace.h): a cell may hold at most 2^16 sets.
 LS_MAX_SETS_PER_CELL = 1 << 16
+# The sets' candidate ids are positions in their cell's plain list (linespace.h, LS_LOCAL_ID): 16
+# bits, two per word, where every cell holds at most this many candidates, else 32.
+LS_IDS16_MAX_CANDIDATES = 1 << 16
+
+
+def candidate_id_bits(densest: int) -> int:
+    """Bits of a set's cell-local candidate id for cells of at most `densest` candidates."""
+    return 16 if densest <= LS_IDS16_MAX_CANDIDATES else 32
+
+
+def candidate_words(entries: int, id_bits: int) -> int:
+    """Words of ls_shaft_tris holding `entries` cell-local ids of `id_bits` bits."""
+    return -(-int(entries) * id_bits // 32)
 
 LS_PLANES = KernelSpec(
     "ls_planes", LS_HEADERS_NO_SCENE, "ls_planes_kernel", (Buf("ls_planes", "float4", "w"),), LS_UNIFORMS)
@@ -148,17 +165,20 @@ LS_COUNT = KernelSpec(
     "ls_count", LS_HEADERS, "ls_shaft_kernel",
     _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "w"), Buf("ls_stats", "uint", "rw")),
     LS_BATCH_UNIFORMS, _PAIR_DEFINES)
+# The fill writes the sets' candidate ids; read-write for the atomic OR of a word that two items
+# share (16-bit ids, linespace.h ls_put_candidate).
+LS_FILL_TRIS = Buf("ls_shaft_tris", "uint", "rw")
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
-    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), Buf("ls_shaft_tris", "uint", "w")),
+    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), LS_FILL_TRIS),
     LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 # The fill from the count's pair bits binds only what it reads (llvmpipe: 16 storage buffers per
 # kernel, and both arrays may be split over 4).
 LS_FILL_FROM_BITS = KernelSpec(
     "ls_fill", LS_HEADERS_NO_SCENE, "ls_shaft_kernel",
-    (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"),
+    (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_ref_bases", "uint", "r"),
      Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
-     Buf("ls_shaft_tris", "uint", "w")),
+     LS_FILL_TRIS),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
 
 
@@ -248,7 +268,7 @@ class SplitArray:
     under it, so a Line Space past the limit runs wherever the device's memory holds it.
 
     Kernels reach the array only through two macros (defaults for one buffer in linespace.h):
-    `<macro>(i)` reads entry i, `<macro>_STORE(i, v)` writes it. `defines()` gives the split
+    `<macro>(i)` reads entry i, `<macro>_STORE(i, v)` writes it (`<macro>_OR(i, v)`: an atomic OR). `defines()` gives the split
     versions, a chain of chunk compares; the chunk is uniform along a shaft's range except where
     the range crosses a boundary, so the compare costs a shift and a branch per access."""
     base: str  # the first buffer's name; the others are base1, base2, ...
@@ -274,9 +294,14 @@ class SplitArray:
         store = " else ".join(
             (f"if (ls_chunk_ == {k}u) " if k < self.chunks - 1 else "") + f"V({name})[ls_entry_] = (v);"
             for k, name in enumerate(self.names))
+        atomic_or = " else ".join(
+            (f"if (ls_chunk_ == {k}u) " if k < self.chunks - 1 else "") + f"ATOMIC_OR(V({name})[ls_entry_], v);"
+            for k, name in enumerate(self.names))
         return ((f"{self.macro}(i)", read),
                 (f"{self.macro}_STORE(i, v)",
-                 f"{{ uint ls_chunk_ = (i) >> {self.shift}u; uint ls_entry_ = {mask}; {store} }}"))
+                 f"{{ uint ls_chunk_ = (i) >> {self.shift}u; uint ls_entry_ = {mask}; {store} }}"),
+                (f"{self.macro}_OR(i, v)",
+                 f"{{ uint ls_chunk_ = (i) >> {self.shift}u; uint ls_entry_ = {mask}; {atomic_or} }}"))
 
     def bind(self, spec: KernelSpec) -> KernelSpec:
         """`spec` with the array's further buffers (same access as the first) and macros."""
@@ -320,11 +345,12 @@ class LineSpaces:
     buffers: dict[str, DeviceBuffer]
     stats: dict = field(default_factory=dict)
     splits: tuple[SplitArray, ...] = ()  # offsets and candidates, where split over buffers
+    id_bits: int = 32  # the sets' cell-local candidate ids (candidate_id_bits)
 
     def trace_spec(self, spec: KernelSpec) -> KernelSpec:
         for split in self.splits:
             spec = split.bind(spec)
-        return spec
+        return spec.with_defines(LS_IDS16=1) if self.id_bits == 16 else spec
 
 
 def uniforms(geometry: GridGeometry, n: int) -> dict:
@@ -457,13 +483,15 @@ def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro:
 @dataclass(frozen=True)
 class ListSizes:
     """What the lists of a set of Line Spaces hold besides their fixed per-cell part: the distinct
-    candidate sets of all cells together and the triangle ids of those sets."""
+    candidate sets of all cells together, the candidate ids of those sets and their width."""
     sets: int
     references: int
+    id_bits: int = 32  # candidate_id_bits of the densest cell (no matter with no references)
 
     @classmethod
     def of(cls, stats: dict) -> "ListSizes":
-        return cls(int(stats.get("ls_sets", 0)), int(stats.get("ls_set_references", 0)))
+        return cls(int(stats.get("ls_sets", 0)), int(stats.get("ls_set_references", 0)),
+                   int(stats.get("ls_id_bits", 32)))
 
 
 def offset_entries(cells: int, n: int, sets: int) -> int:
@@ -492,7 +520,7 @@ def predicted_bytes(device: Device, cells: int, n: int, lists: ListSizes) -> dic
         return {"ls_shaft_offsets": 4, "ls_shaft_tris": 4}
     out = {}
     for array in (split_array(device, "ls_shaft_offsets", "LS_OFFSET", offset_entries(cells, n, lists.sets)),
-                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", lists.references)):
+                  split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(lists.references, lists.id_bits))):
         out.update({name: max(4 * array.chunk_entries(i), 4) for i, name in enumerate(array.names)})
     return out
 
@@ -531,9 +559,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                  "non_empty_shafts": 0, "candidate_references": 0, "ls_sets": 0, "ls_set_references": 0,
                  "ls_bytes": 8, "ls_exact_test": exact_test(device), "ls_offset_buffers": 1, "ls_tri_buffers": 1,
                  "ls_candidate_chunk": candidate_chunk(device), "ls_work_items": 0, "ls_cell_batches": 0,
-                 "ls_pair_bits": False}
+                 "ls_pair_bits": False, "ls_id_bits": 32}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
     ranges = device.read(cells.ranges, np.uint32, 2 * cells.count).reshape(-1, 2)
+    id_bits = candidate_id_bits(int((ranges[:, 1].astype(np.int64) - ranges[:, 0]).max()))
     mask_bytes = min(LS_MASK_BYTES, device.max_buffer_bytes)
     plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), mask_bytes)
     if plan.items + 1 > UINT32_MAX:
@@ -671,7 +700,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below
-            needed = other_bytes + 4 * offset_count + 4 * max(set_refs, 1)
+            needed = other_bytes + 4 * offset_count + 4 * max(candidate_words(set_refs, id_bits), 1)
             if needed > budget_bytes:
                 raise OverBudgetError(needed, budget_bytes, "known from its Line Space count pass; the lists "
                                       "were not filled")
@@ -682,11 +711,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(offsets.bind(bound(LS_LAYOUT)), offsets.entries, dict(sets_bufs, **offset_bufs),
                         batch_uniforms(0, cells.count))
         device.dispatch(bound(LS_DEST), n_shafts, sets_bufs, u)
-        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", set_refs)
+        candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(set_refs, id_bits))
         device.check_memory("ls_shaft_tris", 4 * candidates.entries)
-        tris_bufs = candidates.alloc(device, zero=False)
+        # 16-bit ids: an item's first and last word may be shared with its neighbour's, ORed in (ls_put_candidate)
+        tris_bufs = candidates.alloc(device, zero=id_bits == 16)
         kept.extend(tris_bufs.values())
-        fill = candidates.bind(items.bind(fill_spec))
+        fill = candidates.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec))
         fill_bufs = dict(cell_bufs, **item_bufs, **tris_bufs)
         masks_ready = all_bits or len(plan.batches) == 1
         for c0, c1 in plan.batches:
@@ -717,6 +747,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "candidate_references": total,  # all shafts' lists together, as one list per shaft held them
         "ls_sets": n_sets,
         "ls_set_references": set_refs,
+        "ls_id_bits": id_bits,
         "ls_bytes": sum(b.nbytes for b in offset_bufs.values()) + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
         "ls_offset_buffers": offsets.chunks,
@@ -727,7 +758,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_pair_bits": all_bits,
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
-    return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits)
+    return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits, id_bits)
 
 
 def _scan_split(device: Device, array: SplitArray, bufs: dict[str, DeviceBuffer], u: dict) -> int:
@@ -772,17 +803,31 @@ def _blocks(words: np.ndarray, per_cell: int) -> np.ndarray:
     return words[:cells * width].reshape(cells, width)
 
 
-def shaft_lists(offset_words: np.ndarray, tris: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
-    """The lists expanded to one per shaft: (CSR offsets, shafts + 1 entries; the candidates)."""
+def candidate_entries(tri_words: np.ndarray, id_bits: int) -> np.ndarray:
+    """The sets' cell-local candidate ids, one per entry, from the words of ls_shaft_tris
+    (linespace.h LS_LOCAL_ID: 16-bit ids low half first)."""
+    words = np.asarray(tri_words, np.int64)
+    if id_bits == 32:
+        return words
+    return np.stack([words & 0xFFFF, words >> 16], axis=1).ravel()
+
+
+def shaft_lists(offset_words: np.ndarray, tri_words: np.ndarray, per_cell: int, id_bits: int,
+                cell_begins: np.ndarray, cell_tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lists expanded to one per shaft: (CSR offsets, shafts + 1 entries; the triangle ids).
+    Line Space c's ids index its cell's plain list, cell_tris from cell_begins[c] (as
+    test_candidates in trace.h reads them)."""
     begin, end = shaft_ranges(offset_words, per_cell)
     counts = end - begin
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     where = np.repeat(begin - offsets[:-1], counts) + np.arange(int(offsets[-1]))
-    return offsets, np.asarray(tris, np.int64)[where]
+    local = candidate_entries(tri_words, id_bits)[where]
+    cell = np.repeat(np.arange(len(counts)) // per_cell, counts)
+    return offsets, np.asarray(cell_tris, np.int64)[np.asarray(cell_begins, np.int64)[cell] + local]
 
 
 def cell_set_sizes(offset_words: np.ndarray, per_cell: int) -> tuple[np.ndarray, np.ndarray]:
-    """(distinct sets, their triangle ids) of each Line Space, from ls_shaft_offsets."""
+    """(distinct sets, their candidate ids) of each Line Space, from ls_shaft_offsets."""
     words = np.asarray(offset_words, np.int64)
     first = np.append(_blocks(words, per_cell)[:, 0], len(words) - 1)  # the last offset ends the last set
     return np.diff(first), np.diff(words[first])

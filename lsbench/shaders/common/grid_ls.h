@@ -50,6 +50,6 @@ INLINE Candidates gls_voxel_shaft(CTX_PARAM Candidates list, uint vox, GridRay g
     int face_out = 2 * s.axis_out + (comp3(g.d, s.axis_out) > 0.0f ? 1 : 0);
     float2 uv_in = ls_face_uv(g.o + g.d * s.t_in - cf, s.axis_in);
     float2 uv_out = ls_face_uv(g.o + g.d * s.t_exit - cf, s.axis_out);
-    return shaft_list(CTX_ARG ls, ls_shaft_id(V(ls_n), face_in, uv_in, face_out, uv_out));
+    return shaft_list(CTX_ARG ls, ls_shaft_id(V(ls_n), face_in, uv_in, face_out, uv_out), list);
 }
 #endif

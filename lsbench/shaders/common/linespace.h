@@ -19,7 +19,8 @@
 // set offsets:
 //   [c B]                   where Line Space c's first set offset is: C B + its first set
 //   [c B + 1 + s / P]       bits W (s % P) .. +W-1: shaft s's set, counted from its cell's first
-//   [C B + g], g = 0..sets  set g's candidates are ls_shaft_tris[[C B + g] .. [C B + g + 1])
+//   [C B + g], g = 0..sets  set g's candidates are entries [C B + g] .. [C B + g + 1] - 1 of
+//                           ls_shaft_tris (cell-local ids, LS_LOCAL_ID below)
 // so a lookup (trace.h: shaft_list) reads two words of one block and a set's two offsets. A cell's
 // sets number at most its S shafts, so the index width W is the narrowest of 8 and 16 bits that
 // holds S: 8 bits (P = 4 per word) for N <= 2 (S <= 240), 16 bits (P = 2) for N = 3..8; then
@@ -33,7 +34,7 @@
 // ls_shaft_offsets, ls_shaft_offsets1, ..). A macro names its buffers only where it is used, so a
 // kernel that binds an array write-only (layout: offsets; fill: candidates) never reads it.
 //   LS_OFFSET(i), LS_OFFSET_STORE(i, v)       entry i of the shaft offsets
-//   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) candidate i
+//   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) word i of the candidates (LS_CANDIDATE_OR: atomic OR)
 // The build's per-shaft set words (LS_SHAFT_SET: index in the cell | LS_SET_HEAD on a set's first
 // shaft) and set lengths, scanned into the set offsets (LS_SET_LEN), are split the same way.
 #ifndef LS_OFFSET
@@ -43,6 +44,19 @@
 #ifndef LS_CANDIDATE
 #define LS_CANDIDATE(i) V(ls_shaft_tris)[i]
 #define LS_CANDIDATE_STORE(i, v) V(ls_shaft_tris)[i] = (v)
+#define LS_CANDIDATE_OR(i, v) ATOMIC_OR(V(ls_shaft_tris)[i], v)
+#endif
+// Candidate ids are cell-local (issue 16: half the bytes of the lists): entry k of a set is the
+// position of its triangle in the cell's plain list (voxel_tris from the cell's range begin, which
+// every traversal holds when it looks a shaft up: trace.h test_candidates). With LS_IDS16 (every
+// cell of the structure holds at most 65,536 candidates: linespace.py candidate_id_bits) they are
+// 16 bits, two per word of ls_shaft_tris, entry k in bits 16 (k & 1) of word k / 2; otherwise one
+// per word. Set offsets count entries, not words.
+//   LS_LOCAL_ID(k)  entry k
+#ifdef LS_IDS16
+#define LS_LOCAL_ID(k) ((LS_CANDIDATE((k) >> 1u) >> (((k) & 1u) << 4u)) & 0xffffu)
+#else
+#define LS_LOCAL_ID(k) LS_CANDIDATE(k)
 #endif
 // The build's count and fill address one entry per work item, (shaft, chunk of candidates), in
 // ls_item_offsets (the count there, then its exclusive scan). Where every cell fits one chunk the
@@ -609,6 +623,39 @@ INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
 // cells, so their cell loops run in step. The host makes the groups (linespace.py:
 // BuildPlan.cell_groups): at most 16 cells whose candidates together fit one chunk. Otherwise
 // (ls_grouped = 0) a work item is one chunk of one cell, found by a search over the cells.
+#ifdef KERNEL_ls_fill
+// The fill's entry `count` of an item whose part of its set starts at entry `first`: the
+// `position` of the candidate in its cell's list (cell-local ids, layout above). With LS_IDS16 two
+// entries share a word: `pend` gathers the word's low half until its high half comes; a word the
+// item shares with a neighbouring item (its first and last where its part starts or ends
+// mid-word) is ORed into the zeroed array atomically, every other word stored whole.
+INLINE uint ls_put_candidate(CTX_PARAM uint first, uint count, uint position, uint pend) {
+#ifdef LS_IDS16
+    uint k = first + count;
+    pend |= position << ((k & 1u) << 4u);
+    if ((k & 1u) == 0u) return pend;
+    if (count == 0u) {
+        LS_CANDIDATE_OR(k >> 1u, pend);
+    } else {
+        LS_CANDIDATE_STORE(k >> 1u, pend);
+    }
+    return 0u;
+#else
+    LS_CANDIDATE_STORE(first + count, position);
+    return pend;
+#endif
+}
+
+// After an item's last entry: its last word, where the item ends mid-word.
+INLINE void ls_put_last(CTX_PARAM uint first, uint count, uint pend) {
+#ifdef LS_IDS16
+    if (count > 0u && ((first + count) & 1u) != 0u) {
+        LS_CANDIDATE_OR((first + count) >> 1u, pend);
+    }
+#endif
+}
+#endif
+
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint grouped = V(ls_grouped);
@@ -662,9 +709,10 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint first = LS_ITEM(item);  // where the item's part of its set's list goes (ls_dest_kernel)
         if (first == LS_SKIP) continue;
         uint count = 0u;
+        uint pend = 0u;
         for (uint i = first_i; i < end_i; ++i, ++bit) {
             if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
-                LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+                pend = ls_put_candidate(CTX_ARG first, count, i - begin, pend);
                 count += 1u;
             }
         }
@@ -680,6 +728,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         if (first == LS_SKIP) continue;
 #endif
         uint count = 0u;
+#ifdef KERNEL_ls_fill
+        uint pend = 0u;
+#endif
 #ifdef LS_PAIR_BITS
         uint word = 0u;
 #endif
@@ -689,7 +740,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
                                       p0, p1, p2, p3, p4, p5, p6, p7);
             if (meets != 0) {
 #ifdef KERNEL_ls_fill
-                LS_CANDIDATE_STORE(first + count, V(ls_cell_tris)[i]);
+                pend = ls_put_candidate(CTX_ARG first, count, i - begin, pend);
 #endif
                 count += 1u;
             }
@@ -703,7 +754,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
         }
 #endif
-#ifndef KERNEL_ls_fill
+#ifdef KERNEL_ls_fill
+        ls_put_last(CTX_ARG first, count, pend);
+#else
         LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
 #endif
     }

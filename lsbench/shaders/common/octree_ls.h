@@ -55,7 +55,7 @@ INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf
     if (ls == LS_NONE) return list;
     LsChord ch = ls_chord(V(ls_n), g.o, g.d, g.inv, cell);
     float tol = 5e-4f * g.voxel_t + 1e-6f * max(fabs(t_leaf.x), fabs(t_leaf.y));
-    if (ch.t_in <= t_leaf.x + tol && ch.t_out >= t_leaf.y - tol) return shaft_list(CTX_ARG ls, ch.shaft);
+    if (ch.t_in <= t_leaf.x + tol && ch.t_out >= t_leaf.y - tol) return shaft_list(CTX_ARG ls, ch.shaft, list);
     return list;
 }
 #endif

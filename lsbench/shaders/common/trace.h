@@ -300,14 +300,16 @@ INLINE GridRay make_grid_ray(CTX_PARAM Ray r) {
 
 // ---- A cell's candidates and the loop that tests them ----------------------------------------
 // begin..end in voxel_tris (a plain list), or with from_shaft in a Line Space shaft's list
-// (LS_CANDIDATE, linespace.h).
-STRUCT(Candidates) { uint begin; uint end; int from_shaft; };
+// (LS_LOCAL_ID, linespace.h), whose entries are positions in the cell's plain list, which starts
+// at voxel_tris[base].
+STRUCT(Candidates) { uint begin; uint end; int from_shaft; uint base; };
 
 INLINE Candidates plain_list(uint begin, uint end) {
     Candidates c;
     c.begin = begin;
     c.end = end;
     c.from_shaft = 0;
+    c.base = begin;
     return c;
 }
 
@@ -322,8 +324,9 @@ INLINE uint cell_line_space(CTX_PARAM uint cell) {
 }
 
 // The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`: its block's
-// first set and the shaft's 8- or 16-bit set index, then that set's range (layout: top of linespace.h).
-INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
+// first set and the shaft's 8- or 16-bit set index, then that set's range (layout: top of
+// linespace.h); `cell` is the cell's plain list, which the set's cell-local ids index.
+INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft, Candidates cell) {
     uint shafts = V(ls_shafts);
     uint log2_per = ls_index_log2(shafts);
     uint block = ls * ls_block_words(shafts);
@@ -333,6 +336,7 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft) {
     c.begin = LS_OFFSET(set);
     c.end = LS_OFFSET(set + 1u);
     c.from_shaft = 1;
+    c.base = cell.begin;
     return c;
 }
 #endif
@@ -377,7 +381,7 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
         tr.budget -= 1u;
 #endif
 #ifdef LEAF_LINE_SPACE
-        uint tri = c.from_shaft != 0 ? LS_CANDIDATE(i) : V(voxel_tris)[i];
+        uint tri = V(voxel_tris)[c.from_shaft != 0 ? c.base + LS_LOCAL_ID(i) : i];
 #else
         uint tri = V(voxel_tris)[i];
 #endif
