@@ -343,6 +343,7 @@ def test_cell_past_the_loop_budget(device):
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=(1, 1, 1), ls_n=1))
     st = built.stats
     assert st["linespace_cells"] == 1
+    assert st["ls_id_bits"] == 32  # over 65,536 candidates: a position needs more than 16 bits
     if device.backend == "glsl":
         assert st["ls_work_items"] == 15 * -(-count // st["ls_candidate_chunk"]) > 15
     assert_reference_lists(device, scene, (1, 1, 1), 1, exact_kind(device), built)
@@ -385,6 +386,21 @@ def test_builtin_scenes_agree_with_embree_and_grid(device, scene_name, resolutio
     scene = load_scene(scene_name)
     assert_agrees_with_embree_and_plain_twin(device, "grid-ls", "grid", scene, primary_rays(scene, *size),
                                              resolution, n=2)
+
+
+@pytest.mark.parametrize("id_bits", [16, 32])
+@pytest.mark.parametrize("structure,plain", [("grid-ls", "grid"), ("svo-ls", "svo")])
+def test_candidate_ids_of_either_width_trace_as_the_plain_twin(device, monkeypatch, structure, plain, id_bits):
+    """The sets' cell-local ids, 16 bits (every cell here) or 32 (forced; cells past 65,536
+    candidates), give the plain twin's hits and agree with Embree: random rays from everywhere,
+    so lists of every length and both halves of a word are read."""
+    if id_bits == 32:
+        monkeypatch.setattr(linespace, "LS_IDS16_MAX_CANDIDATES", 0)
+    scene = random_scene(300, size=0.08, seed=5)
+    built = backends.build(device, structure, scene, BuildParams(resolution=(8, 8, 8), ls_n=2))
+    assert built.stats["ls_id_bits"] == id_bits
+    built.release()
+    assert_agrees_with_embree_and_plain_twin(device, structure, plain, scene, random_rays(scene), (8, 8, 8), 2)
 
 
 def assert_agrees_with_embree_and_plain_twin(device, structure, plain, scene, rays, resolution, n):
