@@ -39,7 +39,8 @@ by the facet planes and the exact test (conservative margin LS_EPS), writes the 
 item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
-(ls_hash_kernel .. ls_shaft_set_kernel); (5) exclusive scans of the item counts, the sets per
+(ls_hash_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
+(ls_head_counts_kernel, ls_shaft_set_kernel); (5) exclusive scans of the item counts, the sets per
 cell and the heads' set lengths (set offsets), then the offsets array (ls_layout_kernel) and each
 head item's destination (ls_dest_kernel); (6) fill: only the heads' items write their candidates,
 in list order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
@@ -198,7 +199,9 @@ LS_HASH = _sets_kernel("ls_hash", _ROW_BUFFERS + _uints("ls_set_hash:w"))
 LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_hash:r", "ls_set_table:rw", "ls_set_slot:w"))
 LS_MIN = _sets_kernel("ls_min", _uints("ls_set_table:rw", "ls_set_slot:r"))
 LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "ls_set_heads:rw", "ls_cell_sets:rw"))
-LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_shaft_sets:w"))
+LS_HEAD_COUNTS = _sets_kernel("ls_head_counts", _uints("ls_set_heads:r", "ls_head_counts:w"))
+LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_head_counts:r",
+                                                   "ls_shaft_sets:w"))
 # After the scans: set lengths, the offsets array, each item's destination in the sets' lists.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:r", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
@@ -215,7 +218,8 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_SHAFT_SET,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
+               LS_SHAFT_SET,
                LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CHECK, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
@@ -624,9 +628,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
+                          ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, **shaft_set_bufs)
         hash_spec = LS_HASH if LS_HASH_MASK == 0xFFFFFFFF else LS_HASH.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
-        set_specs = (hash_spec, LS_INSERT, LS_MIN, LS_HEADS, shaft_sets.bind(LS_SHAFT_SET))
+        shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET)
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
@@ -656,9 +661,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 g1 = min(g0 + group_cells, c1)
                 shafts = (g1 - g0) * per_cell
                 zero(group_bufs["ls_set_table"], 2 * shafts)
-                zero(group_bufs["ls_set_heads"], -(-shafts // 32))
-                for spec in set_specs:
-                    device.dispatch(spec, shafts, group_bufs, batch_uniforms(g0, g1, bits_base))
+                words = -(-shafts // 32)
+                zero(group_bufs["ls_set_heads"], words)
+                bu = batch_uniforms(g0, g1, bits_base)
+                for spec in (hash_spec, LS_INSERT, LS_MIN, LS_HEADS):
+                    device.dispatch(spec, shafts, group_bufs, bu)
+                device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
+                device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word
+                device.dispatch(shaft_set_spec, shafts, group_bufs, bu)
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits)
         count = items.bind(count_spec)

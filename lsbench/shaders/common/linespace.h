@@ -1000,28 +1000,35 @@ INLINE void ls_heads_kernel(CTX_PARAM uint b) {
 }
 #endif
 
-#ifdef KERNEL_ls_shaft_set
+#if defined(KERNEL_ls_head_counts) || defined(KERNEL_ls_shaft_set)
 #ifdef LANG_GLSL
 #define LS_POPCOUNT(x) U32(bitCount(x))
 #else
 #define LS_POPCOUNT(x) popcount(x)
 #endif
-// The heads among group shafts [lo, hi).
-INLINE uint ls_heads_between(CTX_PARAM uint lo, uint hi) {
-    uint count = 0u;
-    for (uint w = lo >> 5u; 32u * w < hi; ++w) {
-        uint bits = V(ls_set_heads)[w];
-        if (32u * w < lo) bits &= 0xffffffffu << (lo - 32u * w);
-        if (hi - 32u * w < 32u) bits &= (1u << (hi - 32u * w)) - 1u;
-        count += LS_POPCOUNT(bits);
-    }
-    return count;
+#endif
+
+#ifdef KERNEL_ls_head_counts
+// The heads in each word of ls_set_heads; the host scans them (exclusive) into ls_head_counts.
+INLINE void ls_head_counts_kernel(CTX_PARAM uint w) {
+    V(ls_head_counts)[w] = LS_POPCOUNT(V(ls_set_heads)[w]);
+}
+#endif
+
+#ifdef KERNEL_ls_shaft_set
+// The heads among group shafts [0, x): those of the words before x's (ls_head_counts, the scanned
+// per-word counts) and those of x's word below it. Two reads and a popcount per shaft, where
+// counting the words from the cell's first shaft took up to 15 N^4 / 32 (38 at N = 3).
+INLINE uint ls_heads_before(CTX_PARAM uint x) {
+    uint w = x >> 5u;
+    uint below = (x & 31u) == 0u ? 0u : V(ls_set_heads)[w] & (0xffffffffu >> (32u - (x & 31u)));
+    return V(ls_head_counts)[w] + LS_POPCOUNT(below);
 }
 
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
     uint shafts = V(ls_shafts);
     uint head = V(ls_set_slot)[b];
-    uint index = ls_heads_between(CTX_ARG b - b % shafts, head);  // group shafts of one cell are aligned
+    uint index = ls_heads_before(CTX_ARG head) - ls_heads_before(CTX_ARG b - b % shafts);  // group shafts of one cell are aligned
     LS_SHAFT_SET_STORE(V(ls_cell_first) * shafts + b, index | (head == b ? LS_SET_HEAD : 0u));
 }
 #endif
