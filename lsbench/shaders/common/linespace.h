@@ -1000,18 +1000,10 @@ INLINE void ls_heads_kernel(CTX_PARAM uint b) {
 }
 #endif
 
-#if defined(KERNEL_ls_head_counts) || defined(KERNEL_ls_shaft_set)
-#ifdef LANG_GLSL
-#define LS_POPCOUNT(x) U32(bitCount(x))
-#else
-#define LS_POPCOUNT(x) popcount(x)
-#endif
-#endif
-
 #ifdef KERNEL_ls_head_counts
 // The heads in each word of ls_set_heads; the host scans them (exclusive) into ls_head_counts.
 INLINE void ls_head_counts_kernel(CTX_PARAM uint w) {
-    V(ls_head_counts)[w] = LS_POPCOUNT(V(ls_set_heads)[w]);
+    V(ls_head_counts)[w] = POPCOUNT(V(ls_set_heads)[w]);
 }
 #endif
 
@@ -1022,7 +1014,7 @@ INLINE void ls_head_counts_kernel(CTX_PARAM uint w) {
 INLINE uint ls_heads_before(CTX_PARAM uint x) {
     uint w = x >> 5u;
     uint below = (x & 31u) == 0u ? 0u : V(ls_set_heads)[w] & (0xffffffffu >> (32u - (x & 31u)));
-    return V(ls_head_counts)[w] + LS_POPCOUNT(below);
+    return V(ls_head_counts)[w] + POPCOUNT(below);
 }
 
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {

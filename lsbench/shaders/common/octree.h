@@ -26,12 +26,6 @@
 #define OCT_DEPTH 10
 #endif
 
-#ifdef LANG_GLSL
-#define OCT_POPCOUNT(x) U32(bitCount(x))
-#else
-#define OCT_POPCOUNT(x) popcount(x)
-#endif
-
 // Morton code -> coordinate: every third bit (x = compact3(m), y = compact3(m >> 1), ...).
 INLINE uint oct_compact3(uint x) {
     x &= 0x09249249u;
@@ -59,7 +53,7 @@ INLINE uint oct_voxel(CTX_PARAM uint m) {
 
 // Number of bits below `bit` that are set in `word`.
 INLINE uint oct_rank_in_word(uint word, uint bit) {
-    return bit == 0u ? 0u : OCT_POPCOUNT(word & ((1u << bit) - 1u));
+    return bit == 0u ? 0u : POPCOUNT(word & ((1u << bit) - 1u));
 }
 
 #ifdef KERNEL_oct_flag_leaves
@@ -98,7 +92,7 @@ INLINE void oct_flag_up_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_oct_popcount
 // ---- Build 3: popcount per word (then Device.exclusive_scan, on the device) ---------------
 INLINE void oct_popcount_kernel(CTX_PARAM uint gid) {
-    V(oct_counts)[gid] = OCT_POPCOUNT(V(oct_bits)[gid]);
+    V(oct_counts)[gid] = POPCOUNT(V(oct_bits)[gid]);
 }
 #endif
 

@@ -44,6 +44,7 @@
 #define ATOMIC_OR(lvalue, v) atomic_or(&(lvalue), v)
 #define ATOMIC_XCHG(lvalue, v) atomic_xchg(&(lvalue), v)
 #define ATOMIC_CAS(lvalue, expected, v) atomic_cmpxchg(&(lvalue), expected, v)
+#define POPCOUNT(x) popcount(x)  // set bits of a uint, as a uint
 #define LANG_OPENCL 1
 // A software prefetch of the cache line at address p, where the kernel runs on a CPU: PoCL compiles
 // for the host with clang, and its OpenCL prefetch() is a no-op there. A walk prefetches the nodes
