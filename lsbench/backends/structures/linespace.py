@@ -147,8 +147,9 @@ _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uin
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
 _ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"),
                  Buf("ls_masks", "uint", "r"), Buf("ls_local_tris", "float4", "r"))
-# The count and the fill read no cell boxes (the masks pass made everything cell-local).
-_PAIR_CELL_BUFFERS = tuple(b for b in _CELL_BUFFERS if b.name != "ls_cell_boxes")
+# The count and the fill read no cell boxes (the masks pass made everything cell-local) and no
+# triangle ids (the fill writes cell-local positions, i - the cell's range begin).
+_PAIR_CELL_BUFFERS = tuple(b for b in _CELL_BUFFERS if b.name not in ("ls_cell_boxes", "ls_cell_tris"))
 # The count and the fill read each reference's triangle in cell-local coordinates from the masks
 # pass (ls_local_tris, 48 bytes per reference of the batch), not through the scene's faces and
 # vertices: TRIANGLE_RECORDS leaves scene.h's indexed loads out, and they bind no scene buffer.
