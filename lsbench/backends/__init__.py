@@ -439,16 +439,14 @@ def _plant_dropped_triangle(device: Device, buffers: dict, scene, victim: int | 
     plain list (shaders/common/linespace.h), so the triangle leaves every shaft with it, the same
     mutation for every structure. (Dropping it from one voxel only is no defect any more: the
     traversals keep a hit found in an earlier voxel that lists the triangle, shaders/common/grid.h.)"""
-    lists = [name for name in buffers if name == "voxel_tris"]
+    tris = device.read(buffers["voxel_tris"], np.uint32)
     if victim is None:
-        victim = int(np.argmax(np.bincount(device.read(buffers["voxel_tris"], np.uint32))))
+        victim = int(np.argmax(np.bincount(tris)))
     other = (victim + 1) % scene.triangle_count
-    for name in lists:
-        tris = device.read(buffers[name], np.uint32)
-        dropped = tris == victim
-        tris[dropped] = other
-        buffers[name] = device.upload(name, tris)
-        if name == "voxel_tris" and "tri_verts" in buffers:  # records in list order (bvh): the same entries
-            records = device.read(buffers["tri_verts"], np.float32).reshape(-1, 12)
-            records[dropped] = triangle_records(scene).reshape(-1, 12)[other]
-            buffers["tri_verts"] = device.upload("tri_verts", records.ravel())
+    dropped = tris == victim
+    tris[dropped] = other
+    buffers["voxel_tris"] = device.upload("voxel_tris", tris)
+    if "tri_verts" in buffers:  # records in list order (bvh): the same entries
+        records = device.read(buffers["tri_verts"], np.float32).reshape(-1, 12)
+        records[dropped] = triangle_records(scene).reshape(-1, 12)[other]
+        buffers["tri_verts"] = device.upload("tri_verts", records.ravel())
