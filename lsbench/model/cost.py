@@ -529,14 +529,15 @@ class Choice:
         self.rebuilt.append(dict(failed.summary(), built_bytes=int(built_bytes), build_seconds=build_seconds))
         if self.budget_bytes is None or len(self.rebuilt) > AUTO_REBUILDS:
             return False
-        # What the sample estimates is mostly the lists' ids (ls_shaft_tris; the sets' offsets are a word per set).
-        estimated = failed.bytes.estimated_bytes
-        fixed = failed.bytes.total - estimated
-        scale = (built_bytes - fixed) / estimated if estimated > 0 else built_bytes / max(failed.bytes.total, 1)
-        scaled = (lambda o: o.bytes.total + o.bytes.estimated_bytes * (max(scale, 1.0) - 1.0)) if estimated > 0 \
-            else (lambda o: o.bytes.total * max(scale, 1.0))
+        # What the sample estimates is mostly the lists' ids (ls_shaft_tris; the sets' offsets are a
+        # word per set); where a prediction names no estimated part, the whole of it is scaled.
+        def uncertain(o: Option) -> int:
+            return o.bytes.estimated_bytes if failed.bytes.estimated_bytes > 0 else o.bytes.total
+
+        scale = (built_bytes - (failed.bytes.total - uncertain(failed))) / max(uncertain(failed), 1)
         tried = {(r["resolution"], r["ls_n"], r["ls_min_candidates"]) for r in self.rebuilt}
-        left = [o for o in self.options if o.fits and scaled(o) <= self.budget_bytes
+        left = [o for o in self.options
+                if o.fits and o.bytes.total + uncertain(o) * (max(scale, 1.0) - 1.0) <= self.budget_bytes
                 and (o.summary()["resolution"], o.ls_n, o.ls_min_candidates) not in tried]
         if not left:
             return False
