@@ -24,12 +24,27 @@ SPONZA_CAMERA = Camera(eye=(1100, 180, -40), target=(-900, 420, 40), up=(0, 1, 0
 
 
 def _read_tree(built):
+    """The nodes as the float layout holds them: (n, 6, 4) planes lo.x, hi.x, lo.y, hi.y, lo.z, hi.z
+    of slots 0..3, (n, 2, 4) refs and counts; quantized nodes decoded in float32 as the traversal
+    decodes them (origin + q * step, shaders/common/bvh.h), with (n, 3) steps; voxel_tris."""
     d = built.device
     n_nodes = built.stats["nodes"]
-    nodes = d.read(built.buffers["bvh_nodes"], np.float32, 24 * n_nodes).reshape(n_nodes, 6, 4)
-    links = d.read(built.buffers["bvh_links"], np.uint32, 8 * n_nodes).reshape(n_nodes, 2, 4)
     tris = d.read(built.buffers["voxel_tris"], np.uint32)
-    return nodes, links, tris
+    if built.stats["node_layout"] == "float":
+        nodes = d.read(built.buffers["bvh_nodes"], np.float32, 24 * n_nodes).reshape(n_nodes, 6, 4)
+        links = d.read(built.buffers["bvh_links"], np.uint32, 8 * n_nodes).reshape(n_nodes, 2, 4)
+        return nodes, links, tris, None
+    q = d.read(built.buffers["bvh_qnodes"], np.uint32, 16 * n_nodes).reshape(n_nodes, 4, 4)
+    origin = q[:, 0, :3].copy().view(np.float32)
+    exponents = (q[:, 0, 3:4] >> np.array([0, 8, 16], np.uint32)) & 0xFF
+    assert np.all((exponents >= 1) & (exponents <= 254)) and np.all(q[:, 2, 3] == 0)
+    steps = (exponents << 23).astype(np.uint32).view(np.float32)
+    byte = lambda w: ((w[:, None] >> np.array([0, 8, 16, 24], np.uint32)) & 0xFF).astype(np.float32)
+    words = [q[:, 1, 0], q[:, 1, 1], q[:, 1, 2], q[:, 1, 3], q[:, 2, 0], q[:, 2, 1]]
+    nodes = np.stack([(origin[:, k // 2, None] + byte(w) * steps[:, k // 2, None]).astype(np.float32)
+                      for k, w in enumerate(words)], axis=1)
+    links = np.stack([q[:, 3], byte(q[:, 2, 2]).astype(np.uint32)], axis=1)
+    return nodes, links, tris, steps
 
 
 def _slot_box(nodes, node, slot):
@@ -42,10 +57,13 @@ NONE = 0xFFFFFFFF
 
 def check_tree(built, scene, leaf_size):
     """Walk the device's 4-wide nodes from the root: every node reached once, every triangle in
-    exactly one leaf, every slot's box holding the boxes of its node's slots and its leaf's
-    triangles (exact float min/max: no tolerance), no leaf over leaf_size, the depth as the build
-    says (the traversal's stack is sized from it). Returns the leaf sizes."""
-    nodes, links, tris = _read_tree(built)
+    exactly one leaf, no leaf over leaf_size, the depth as the build says (the traversal's stack is
+    sized from it). Float nodes: every slot's box holds the boxes of its node's slots, and a leaf's
+    is its triangles' (exact float min/max: no tolerance). Quantized nodes (check_quantized): every
+    slot's box, as the traversal decodes it, holds all triangles below it, within one step of
+    their box. Returns the leaf sizes."""
+    nodes, links, tris, steps = _read_tree(built)
+    quantized = steps is not None
     n = scene.triangle_count
     assert np.array_equal(np.sort(tris), np.arange(n, dtype=np.uint32)), "voxel_tris is no permutation"
     triangles = scene.triangles.astype(np.float32)
@@ -65,7 +83,7 @@ def check_tree(built, scene, leaf_size):
             lo, hi = _slot_box(nodes, node, slot)
             if count == 0:  # a node: this box holds its slots' boxes
                 for s in range(4):
-                    if links[ref, 0, s] != NONE:
+                    if links[ref, 0, s] != NONE and not quantized:  # quantized: check_quantized below
                         clo, chi = _slot_box(nodes, ref, s)
                         assert np.all(lo <= clo) and np.all(chi <= hi), (node, slot, ref)
                 stack.append((ref, depth + 1))
@@ -75,28 +93,67 @@ def check_tree(built, scene, leaf_size):
                 ids = tris[ref:ref + count]
                 covered[ids] += 1
                 v = triangles[ids].reshape(-1, 3)
-                assert np.array_equal(lo, v.min(0)) and np.array_equal(hi, v.max(0)), "leaf box is not tight"
+                assert quantized or (np.array_equal(lo, v.min(0)) and np.array_equal(hi, v.max(0))), \
+                    "leaf box is not tight"
     assert np.all(seen_nodes == 1), "a node is unreachable or reached twice (buffers sized exactly)"
     assert np.all(covered == 1), f"{np.count_nonzero(covered != 1)} triangles not in exactly one leaf"
     assert built.stats["leaves"] == len(leaf_sizes)
     # bvh.py's stack bound: 4-wide levels = binary depth // 2 + 1
     assert deepest <= built.stats["depth"] // 2
+    if quantized:
+        check_quantized(nodes, links, tris, steps, triangles)
     return np.array(leaf_sizes)
 
 
+def check_quantized(nodes, links, tris, steps, triangles):
+    """Quantized nodes: each slot's decoded box holds the exact box of every triangle below it
+    (leaf or subtree), and lies within one step of it on every side (the build takes the tightest
+    q); each node's steps are the smallest powers of two that span its box in 255 steps (up to the
+    float32 rounding the build's loop settles, or the least step 2^-126)."""
+    exact = {}
+
+    def subtree_box(node):  # the exact (lo, hi) of all triangles below `node`
+        if node not in exact:
+            boxes = [slot_exact(node, s) for s in range(4) if links[node, 0, s] != NONE]
+            exact[node] = (np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0))
+        return exact[node]
+
+    def slot_exact(node, s):
+        ref, count = int(links[node, 0, s]), int(links[node, 1, s])
+        if count == 0:
+            return subtree_box(ref)
+        v = triangles[tris[ref:ref + count]].reshape(-1, 3)
+        return v.min(0), v.max(0)
+
+    for node in range(len(nodes)):
+        used = [s for s in range(4) if links[node, 0, s] != NONE]
+        boxes = [slot_exact(node, s) for s in used]
+        node_lo, node_hi = np.min([b[0] for b in boxes], 0), np.max([b[1] for b in boxes], 0)
+        step = steps[node]
+        span = (node_hi.astype(np.float64) - node_lo) / 255.0
+        assert np.all((step <= 2.0 * span * (1 + 1e-6)) | (step == np.float32(2.0 ** -126)) |
+                      (node_lo + np.float32(255.0) * (step / np.float32(2.0)) < node_hi)), (node, step, span)
+        for s, (lo, hi) in zip(used, boxes):
+            qlo, qhi = _slot_box(nodes, node, s)
+            assert np.all(qlo <= lo) and np.all(qhi >= hi), ("a quantized box misses its triangles", node, s)
+            assert np.all(qlo > lo - step) and np.all(qhi < hi + step), ("a quantized box is not tight", node, s)
+
+
+@pytest.mark.parametrize("layout", ["float", "quantized"])
 @pytest.mark.parametrize("scene_name,leaf_size,quality", [
     ("cornell", 8, "treelet"), ("cornell", 64, "sah"), ("cornell", 64, "none"), ("single-triangle", 1, "treelet"),
     ("two-planes", 1, "treelet"), ("spheres", 4, "sah"), ("spheres", 4, "treelet"), ("spheres", 1, "treelet"),
-    ("spheres", 16, "plain-treelet")])
-def test_the_device_build_is_a_valid_bvh(device, scene_name, leaf_size, quality):
+    ("spheres", 16, "plain-treelet"), ("spheres", 255, "none")])
+def test_the_device_build_is_a_valid_bvh(device, scene_name, leaf_size, quality, layout):
     scene = load_scene(scene_name)
     if scene_name == "spheres":  # a few hundred triangles of it
         scene = _subset(scene, 600)
     built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1), leaf_size=leaf_size,
-                                                              options={"bvh_quality": quality}))
+                                                              options={"bvh_quality": quality, "bvh_nodes": layout}))
     try:
+        assert built.stats["node_layout"] == layout
         sizes = check_tree(built, scene, leaf_size)
-        assert built.memory_bytes == 128 * built.stats["nodes"] + (4 + 48) * scene.triangle_count
+        assert built.memory_bytes == bvh.NODE_LAYOUTS[layout] * built.stats["nodes"] + (4 + 48) * scene.triangle_count
         # The trace's records, in leaf order (LIST_ORDER_RECORDS): record i is voxel_tris[i]'s.
         tris = built.device.read(built.buffers["voxel_tris"], np.uint32)
         records = built.device.read(built.buffers["tri_verts"], np.float32)
@@ -326,6 +383,60 @@ def test_both_push_orders_find_the_same_hits(device, monkeypatch):
                 assert cl.unexplained == 0, (rays.name, cl)
     finally:
         built.release()
+
+
+@pytest.mark.parametrize("structure", ["bvh", "bvh-ls"])
+@pytest.mark.parametrize("scene_name", ["atrium", "adversarial"])
+def test_both_node_layouts_find_the_same_hits(device, structure, scene_name):
+    """Float and quantized nodes (bvh.py NODE_LAYOUTS; the device picks one, options["bvh_nodes"]
+    forces either) on this device: primary, incoherent and any-hit shadow rays, and on the
+    adversarial scene (strips in the bounding planes, slivers, all 1e4 units from the origin) its
+    adversarial rays. Both answer every ray as Embree's check explains; on the renderer's rays
+    they find the same closest distance (another triangle only at a tie) and the same occluded
+    rays. A quantized box holds its float box and more, so on the adversarial rays that lie in a
+    box's face plane (a triangle's own plane: a graze) the quantized walk may find a grazed
+    triangle nearer than the float walk's hit, never a farther one; bvh-ls builds its Line Spaces
+    over the leaves' boxes as the nodes hold them, so its shafts differ too and a graze may go
+    either way."""
+    scene = load_scene(scene_name)
+    lo, hi = scene.bounds
+    light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+    sets = [primary_rays(scene, 29, 23), make_rays("incoherent", scene, 27, 21, None, {}),
+            make_rays("shadow", scene, 21, 17, None, {"light_size": light, "samples": 1})]
+    if scene_name == "adversarial":
+        sets.append(make_rays("adversarial", scene, 1, 1, None, {}))
+    ls = structure == "bvh-ls"
+    built = {layout: backends.build(device, structure, scene, BuildParams(
+        resolution=(1, 1, 1), ls_n=2 if ls else 0, ls_min_candidates=8 if ls else 0,
+        options={"bvh_nodes": layout})) for layout in bvh.NODE_LAYOUTS}
+    try:
+        assert built["quantized"].stats["node_bytes"] == 64 and built["float"].stats["node_bytes"] == 128
+        for rays in sets:
+            ours, theirs = (backends.trace(built[layout], rays) for layout in bvh.NODE_LAYOUTS)
+            ref_p, ref_t = embree_closest(scene, rays)
+            for hits in (ours, theirs):
+                _, cl = judge_hits(scene, rays, hits.prim_ids, hits.distances, ref_p, ref_t)
+                assert cl.unexplained == 0, (rays.name, cl)
+            if rays.name == "adversarial":
+                differ = np.count_nonzero(theirs.distances != ours.distances)
+                assert differ <= 0.01 * rays.count, differ
+                assert ls or np.all(theirs.distances <= ours.distances)
+                continue
+            assert np.array_equal(ours.prim_ids >= 0, theirs.prim_ids >= 0), rays.name
+            if rays.query == "closest":
+                np.testing.assert_array_equal(ours.distances, theirs.distances, err_msg=rays.name)
+    finally:
+        for b in built.values():
+            b.release()
+
+
+def test_node_layout_is_checked(device):
+    """options["bvh_nodes"]: auto picks by the device (float where work items run one after the
+    other, quantized in SIMD lanes); anything else is one line naming the allowed values."""
+    assert bvh.node_layout(device, {}) == ("float" if device.serial_work_items else "quantized")
+    assert bvh.node_layout(device, {"bvh_nodes": "quantized"}) == "quantized"
+    with pytest.raises(ValueError, match="bvh_nodes must be one of auto, float, quantized, got 'half'"):
+        bvh.node_layout(device, {"bvh_nodes": "half"})
 
 
 def test_work_counters_count_node_visits_and_tests(device):

@@ -22,10 +22,18 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    (QUALITIES) stops after a stage.
 6. Compaction: the inner nodes that stay nodes are flagged (not collapsed into a leaf), those at
    an even depth head the 4-wide nodes (every odd level is dropped: a node takes its children's
-   children), which are scanned and written in the layout of bvh.h, 128 bytes per node (all four
-   children's boxes side by side in bvh_nodes, 96 bytes; refs and leaf counts in bvh_links, 32),
-   into buffers of exactly that size. Sponza: 4-wide nodes take 40 node visits per primary ray
-   where the binary nodes (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL.
+   children), which are scanned and written in one of the layouts of bvh.h into buffers of exactly
+   that size. Sponza: 4-wide nodes take 40 node visits per primary ray where the binary nodes
+   (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL. The layout (options["bvh_nodes"],
+   NODE_LAYOUTS; "auto" by the device):
+   - "float", 128 bytes per node (all four children's boxes side by side in bvh_nodes, 96 bytes;
+     refs and leaf counts in bvh_links, 32): where work items run one after the other (PoCL);
+   - "quantized", 64 bytes per node (bvh_qnodes: the boxes in 8 bits per plane on power-of-two
+     steps of the node's own box, conservative in float32): where work items run in SIMD lanes
+     (llvmpipe, GPUs). llvmpipe loads every lane's value on its own (docs/profiles.md, section 10),
+     so half the loads per visit: 0.85-0.91 of the device time there (Sponza and BMW 256²,
+     primary and incoherent rays); PoCL's scalar walk pays for the decoding instead (1.13 on Sponza
+     incoherent rays) and keeps float boxes (docs/profiles.md, section 14).
 7. Records (bvh only): the triangles' records (trace.h, 48 bytes each) gathered into leaf order
    (leaf_order_records), so a leaf's records are adjacent and the trace loads them by list
    position, not through the id (LIST_ORDER_RECORDS). With the walk's prefetch of what it pushes
@@ -55,9 +63,12 @@ inner node).
 
 Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
 scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
-per-buffer limit at allocation (llvmpipe 128 MiB: 1.4 M 4-wide nodes of 96 bytes, ~30 M triangles
-for the sort buffers); the traversal's leaf entries address a slot as 4 * node + slot in 31 bits."""
+per-buffer limit at allocation (llvmpipe 128 MiB: 2.1 M quantized 4-wide nodes of 64 bytes, ~30 M
+triangles for the sort buffers); the traversal's leaf entries address a slot as 4 * node + slot in
+31 bits; leaves hold at most 255 triangles (LEAF_SIZES: the quantized layout counts them in a byte)."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -73,7 +84,9 @@ SORT_UNIFORMS = BVH_UNIFORMS + (Uniform("sort_shift", "uint"), Uniform("sort_chu
                                 Uniform("sort_chunks", "uint"))
 SORT_CHUNK = 256  # keys per work item of the sort (a loop of 256 stays far inside llvmpipe's budget)
 SORT_BITS, SORT_DIGITS, MORTON_BITS = 5, 32, 30  # must match shaders/common/bvh.h
-NODE_BYTES = 128  # a 4-wide node: bvh_nodes 96 + bvh_links 32 (shaders/common/bvh.h)
+# The 4-wide node's layouts (shaders/common/bvh.h) and their bytes per node: "float" (bvh_nodes 96
+# + bvh_links 32), "quantized" (bvh_qnodes); options["bvh_nodes"] picks one, "auto" by the device.
+NODE_LAYOUTS = {"float": 128, "quantized": 64}
 WIDTH = 4
 LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
 # Leaves of at most 2: the SAH collapse and the treelets then give Sponza 31.3 node visits and 6.3
@@ -128,11 +141,40 @@ RECORDS = KernelSpec("bvh_records", BVH_HEADERS_NO_SCENE, "bvh_records_kernel",
 BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE, RECORDS)
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
+FLOAT_NODE_BUFFERS = ("bvh_nodes", "bvh_links")
 # bvh reads its triangle records in leaf order (build step 7; trace.h LIST_ORDER_RECORDS); bvh-ls
 # keeps the scene's, in triangle order, because its Line Space lists hold triangle ids.
 TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BUFFERS,
                        GRID_UNIFORMS).with_defines(LIST_ORDER_RECORDS=1)
 RECORD_BYTES = 48  # a triangle's record: 3 float4 (trace.h, tri_verts)
+
+
+def node_layout(device: Device, options: dict) -> str:
+    """The node layout of options["bvh_nodes"]: "float", "quantized", or "auto" (the default):
+    quantized where the device runs work items in SIMD lanes (Device.serial_work_items false)."""
+    value = options.get("bvh_nodes", "auto")
+    if value == "auto":
+        return "float" if device.serial_work_items else "quantized"
+    if value not in NODE_LAYOUTS:
+        raise ValueError(f"bvh_nodes must be one of auto, {', '.join(NODE_LAYOUTS)}, got {value!r}")
+    return value
+
+
+def with_node_layout(spec: KernelSpec, layout: str) -> KernelSpec:
+    """A kernel written against the float layout's buffers (bvh_nodes, bvh_links), in `layout`:
+    for "quantized", bvh_qnodes bound in their place and BVH_QUANTIZED defined."""
+    if layout == "float":
+        return spec
+    access = next(b.access for b in spec.buffers if b.name in FLOAT_NODE_BUFFERS)
+    buffers, placed = [], False
+    for b in spec.buffers:
+        if b.name in FLOAT_NODE_BUFFERS:
+            if not placed:
+                buffers.append(Buf("bvh_qnodes", "uint4", access))
+                placed = True
+        else:
+            buffers.append(b)
+    return dataclasses.replace(spec, buffers=tuple(buffers)).with_defines(BVH_QUANTIZED=1)
 
 
 def check_leaf_size(value) -> int:
@@ -146,6 +188,7 @@ def check_leaf_size(value) -> int:
 def prepare(device: Device) -> None:
     for spec in BUILD_SPECS:
         device.compile(spec)
+    device.compile(with_node_layout(WRITE, "quantized"))
 
 
 def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict
@@ -182,9 +225,10 @@ def check_quality(value: str) -> str:
 
 
 def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry, leaf_size: int,
-              quality: str = "treelet") -> tuple[dict[str, DeviceBuffer], dict]:
-    """Build steps 1-5 (module docstring). Returns the structure's buffers (bvh_nodes, bvh_links,
-    voxel_tris) and the build's stats."""
+              quality: str = "treelet", layout: str = "float") -> tuple[dict[str, DeviceBuffer], dict]:
+    """Build steps 1-6 (module docstring) with nodes in `layout` (NODE_LAYOUTS). Returns the
+    structure's buffers (bvh_nodes and bvh_links, or bvh_qnodes; voxel_tris) and the build's stats."""
+    node_bytes = NODE_LAYOUTS[layout]
     sah = check_quality(quality) in ("sah", "treelet")
     if n_tris > MAX_TRIANGLES:
         raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
@@ -251,13 +295,17 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         if WIDTH * n_nodes >= 2**31:
             raise DeviceLimitError(f"bvh: {n_nodes} nodes overflow the traversal's 31-bit leaf entries "
                                    "(4 * node + slot)")
-        nodes = device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)
-        made.append(nodes)
-        links = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
-        made.append(links)
-        device.dispatch(WRITE, max(inner, 1) if n_nodes else 1,
+        if layout == "float":
+            node_bufs = {"bvh_nodes": device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)}
+            made.append(node_bufs["bvh_nodes"])
+            node_bufs["bvh_links"] = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
+            made.append(node_bufs["bvh_links"])
+        else:
+            node_bufs = {"bvh_qnodes": device.alloc("bvh_qnodes", node_bytes * max(n_nodes, 1), zero=False)}
+            made.append(node_bufs["bvh_qnodes"])
+        device.dispatch(with_node_layout(WRITE, layout), max(inner, 1) if n_nodes else 1,
                         dict(scene_buffers, voxel_tris=tris, bvh_children=children, bvh_ranges=ranges, bvh_keep=keep,
-                             bvh_ids=ids, bvh_fit_boxes=boxes, bvh_nodes=nodes, bvh_links=links),
+                             bvh_ids=ids, bvh_fit_boxes=boxes, **node_bufs),
                         dict(u, bvh_node_count=n_nodes))
         device.finish()
     except BaseException:
@@ -269,8 +317,9 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         for b in temps:
             device.release(b)
     stats.update({"nodes": max(n_nodes, 1), "binary_nodes": n_binary, "leaves": n_binary + 1,
-                  "references": n_tris, "node_bytes": NODE_BYTES, "temp_bytes": int(temp_bytes)})
-    return {"bvh_nodes": nodes, "bvh_links": links, "voxel_tris": tris}, stats
+                  "references": n_tris, "node_layout": layout, "node_bytes": node_bytes,
+                  "temp_bytes": int(temp_bytes)})
+    return {**node_bufs, "voxel_tris": tris}, stats
 
 
 def _area(lo, hi) -> float:
@@ -282,7 +331,8 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
           params: BuildParams) -> BuildResult:
     leaf_size = check_leaf_size(params.leaf_size)
     buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
-                               quality=params.options.get("bvh_quality", "treelet"))
+                               quality=params.options.get("bvh_quality", "treelet"),
+                               layout=node_layout(device, params.options))
     try:
         buffers["tri_verts"] = leaf_order_records(device, scene_buffers, buffers["voxel_tris"], n_tris)
     except BaseException:
@@ -308,9 +358,10 @@ def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBu
 
 
 def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
-    """The trace kernel with its stack sized to the tree: 3 entries per 4-wide level of the deepest
-    path plus one node's 4 (bvh.h: trace_bvh; the treelet restructuring may make a tree deeper than
-    the Karras hierarchy's ~64 levels). Where the driver runs work items in SIMD lanes, a node's
-    hit slots are sorted in registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
-    spec = spec.with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)
+    """The trace kernel for the built tree: its node layout (stats["node_layout"]), its stack sized
+    to the tree: 3 entries per 4-wide level of the deepest path plus one node's 4 (bvh.h:
+    trace_bvh; the treelet restructuring may make a tree deeper than the Karras hierarchy's ~64
+    levels). Where the driver runs work items in SIMD lanes, a node's hit slots are sorted in
+    registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
+    spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)
     return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

@@ -8,7 +8,7 @@ Build, all on the device:
    (bvh_quality "plain-treelet"). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
    leaves of ~2 triangles, which no Line Space can speed up; here the Line Space is what makes a
    large leaf cheap to test (bvh_quality = "treelet" asks for the SAH leaves);
-2. the cells: every child slot of a node (cell = 2 * node + slot) that is a leaf of more than
+2. the cells: every child slot of a node (cell = 4 * node + slot) that is a leaf of more than
    K = ls_min_candidates triangles is flagged, an exclusive scan gives ls_ids (slot -> Line Space),
    and each such leaf's box (padded so that no side is under 5 % of the longest: bvh.h
    bvh_ls_box) and its range of voxel_tris become a cell;
@@ -45,22 +45,25 @@ class LineSpaceBVH:
         bvh.prepare(device)
         linespace.prepare(device)
         for spec in (CELL_FLAGS, CELLS):
-            device.compile(spec)
+            for layout in bvh.NODE_LAYOUTS:
+                device.compile(bvh.with_node_layout(spec, layout))
 
     def build(self, device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
               params: BuildParams) -> BuildResult:
         leaf_size = bvh.check_leaf_size(params.leaf_size or DEFAULT_LEAF_SIZE)
         n = linespace.check_n(params.ls_n or 1)
         k = linespace.check_min_candidates(params.ls_min_candidates)
+        layout = bvh.node_layout(device, params.options)
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
-                                       quality=params.options.get("bvh_quality", "plain-treelet"))
+                                       quality=params.options.get("bvh_quality", "plain-treelet"), layout=layout)
+        node_bufs = {name: buffers[name] for name in buffers if name != "voxel_tris"}
         slots = bvh.WIDTH * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)
         made: list[DeviceBuffer] = []
         try:
             flags = device.alloc("ls_flags", 4 * slots, zero=False)
             try:
-                device.dispatch(CELL_FLAGS, slots, {"bvh_links": buffers["bvh_links"], "ls_flags": flags}, u)
+                device.dispatch(bvh.with_node_layout(CELL_FLAGS, layout), slots, {**node_bufs, "ls_flags": flags}, u)
                 ls_ids, n_cells = device.exclusive_scan(flags, slots, "ls_ids")
             finally:
                 device.release(flags)
@@ -69,8 +72,9 @@ class LineSpaceBVH:
             made.append(boxes)
             ranges = device.alloc("ls_cell_ranges", 8 * max(n_cells, 1), zero=False)
             made.append(ranges)
-            device.dispatch(CELLS, slots, {**scene_buffers, "bvh_nodes": buffers["bvh_nodes"], "bvh_links": buffers["bvh_links"],
-                                           "ls_ids": ls_ids, "ls_cell_boxes": boxes, "ls_cell_ranges": ranges}, u)
+            device.dispatch(bvh.with_node_layout(CELLS, layout), slots,
+                            {**scene_buffers, **node_bufs, "ls_ids": ls_ids, "ls_cell_boxes": boxes,
+                             "ls_cell_ranges": ranges}, u)
             cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
             kept = sum(b.nbytes for b in buffers.values()) + ls_ids.nbytes
             ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)

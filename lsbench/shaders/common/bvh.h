@@ -11,11 +11,24 @@
 //
 // The finished structure is 4-wide (the binary tree with every odd level dropped, builds 7-8): a
 // node holds the boxes of its up to 4 children (slots) side by side, so one float4 operation
-// tests a plane of all four (the layout of Embree's BVH4 and tinybvh's BVH4_GPU), 128 bytes:
+// tests a plane of all four (the layout of Embree's BVH4 and tinybvh's BVH4_GPU), in one of two
+// layouts (bvh.py picks one per device):
+// float, 128 bytes per node (devices that run work items one after the other: PoCL):
 //   bvh_nodes  6 float4 per node: lo.x of slots 0..3, hi.x, lo.y, hi.y, lo.z, hi.z      96 bytes
 //   bvh_links  2 uint4 per node: ref of slots 0..3, then count of slots 0..3. count 0: the slot is
 //              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count);
 //              ref BVH_NONE: an unused slot                                             32 bytes
+// quantized (BVH_QUANTIZED), 64 bytes per node (devices that run work items in SIMD lanes: llvmpipe,
+// GPUs), the children's boxes in 8 bits per plane on a grid of the node's own (Mahovsky 2005;
+// Ylitie, Karras & Laine 2017 quantize the same way to power-of-two steps):
+//   bvh_qnodes 4 uint4 per node: (origin.x, .y, .z as float bits, the biased float exponents
+//              e_x | e_y << 8 | e_z << 16 of the steps 2^(e - 127)); (lo.x, hi.x, lo.y, hi.y) of
+//              slots 0..3 in the bytes of each word (slot k in byte k); (lo.z, hi.z, the slots'
+//              counts in bytes, 0); the slots' refs (as bvh_links)                  64 bytes
+//              A slot's plane is origin + q * step, exactly so in float32 (q * step is exact:
+//              8 bits times a power of two; the sum rounds once, the same in the build and the
+//              traversal), and the build picks q so that the box holds the child's exact one.
+//              Leaves hold at most 255 triangles (bvh.py LEAF_SIZES).
 //   voxel_tris the triangle ids in Morton order (every leaf a contiguous range of it; trace.h
 //              tests a cell's plain list from this buffer, whatever the structure)
 // Node 0 is the root. A scene of at most leaf-size triangles has one node whose slot 0 is a leaf
@@ -35,6 +48,11 @@
 #endif
 
 STRUCT(Box) { float3 lo; float3 hi; };
+
+#ifdef BVH_QUANTIZED
+// The step of a quantized node's biased exponent e (1..254): 2^(e - 127).
+INLINE float bvh_q_step(uint e) { return as_float(e << 23); }
+#endif
 
 INLINE Box box_union(Box a, Box b) {
     Box u;
@@ -454,6 +472,54 @@ INLINE WideChild bvh_wide_child(CTX_PARAM uint node, uint k) {
     return bvh_leaf_or_node(CTX_ARG c);
 }
 
+#ifdef BVH_QUANTIZED
+// The biased exponent of the smallest power-of-two step with org + 255 * step >= top in float32.
+// ext / 255 has biased exponent b, so 2^(b + 1 - 127) exceeds it; the loop settles the float
+// rounding of org + 255 * step (a step of 2^-126 at least: a flat axis quantizes to q = 0).
+INLINE uint bvh_q_exponent(float org, float top) {
+    float v = (top - org) * (1.0f / 255.0f);
+    uint e = clamp((as_uint(v) >> 23) + 1u, 1u, 254u);
+    while (e < 254u && org + 255.0f * bvh_q_step(e) < top) e += 1u;
+    return e;
+}
+
+// The largest q in 0..255 with org + q * step <= lo, and the smallest with org + q * step >= hi,
+// in the traversal's own float32 arithmetic (bvh_node_planes): the slot's box holds the child's.
+INLINE uint bvh_q_below(float org, float step, float lo) {
+    float q = clamp(floor((lo - org) / step), 0.0f, 255.0f);
+    while (q > 0.0f && org + q * step > lo) q -= 1.0f;
+    while (q < 255.0f && org + (q + 1.0f) * step <= lo) q += 1.0f;
+    return U32(q);
+}
+
+INLINE uint bvh_q_above(float org, float step, float hi) {
+    float q = clamp(ceil((hi - org) / step), 0.0f, 255.0f);
+    while (q < 255.0f && org + q * step < hi) q += 1.0f;
+    while (q > 0.0f && org + (q - 1.0f) * step >= hi) q -= 1.0f;
+    return U32(q);
+}
+
+// The 4 slots' q of one plane (used slots only: an unused one is 0) in the bytes of a word.
+#define BVH_Q_WORD(fn, org, step, f_)                                                          \
+    ((a.ref != BVH_NONE ? fn(org, step, a.b.f_) : 0u) | ((b.ref != BVH_NONE ? fn(org, step, b.b.f_) : 0u) << 8) | \
+     ((c.ref != BVH_NONE ? fn(org, step, c.b.f_) : 0u) << 16) | ((d.ref != BVH_NONE ? fn(org, step, d.b.f_) : 0u) << 24))
+
+INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChild c, WideChild d) {
+    // The node's box: the union of its used slots (slot 0 is always used; unused ones are ignored).
+    Box u = a.b;
+    if (b.ref != BVH_NONE) u = box_union(u, b.b);
+    if (c.ref != BVH_NONE) u = box_union(u, c.b);
+    if (d.ref != BVH_NONE) u = box_union(u, d.b);
+    uint ex = bvh_q_exponent(u.lo.x, u.hi.x), ey = bvh_q_exponent(u.lo.y, u.hi.y), ez = bvh_q_exponent(u.lo.z, u.hi.z);
+    float sx = bvh_q_step(ex), sy = bvh_q_step(ey), sz = bvh_q_step(ez);
+    V(bvh_qnodes)[4u * id] = make_uint4(as_uint(u.lo.x), as_uint(u.lo.y), as_uint(u.lo.z), ex | (ey << 8) | (ez << 16));
+    V(bvh_qnodes)[4u * id + 1u] = make_uint4(BVH_Q_WORD(bvh_q_below, u.lo.x, sx, lo.x), BVH_Q_WORD(bvh_q_above, u.lo.x, sx, hi.x),
+                                             BVH_Q_WORD(bvh_q_below, u.lo.y, sy, lo.y), BVH_Q_WORD(bvh_q_above, u.lo.y, sy, hi.y));
+    V(bvh_qnodes)[4u * id + 2u] = make_uint4(BVH_Q_WORD(bvh_q_below, u.lo.z, sz, lo.z), BVH_Q_WORD(bvh_q_above, u.lo.z, sz, hi.z),
+                                             a.count | (b.count << 8) | (c.count << 16) | (d.count << 24), 0u);
+    V(bvh_qnodes)[4u * id + 3u] = make_uint4(a.ref, b.ref, c.ref, d.ref);
+}
+#else
 INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChild c, WideChild d) {
     V(bvh_nodes)[6u * id] = make_float4(a.b.lo.x, b.b.lo.x, c.b.lo.x, d.b.lo.x);
     V(bvh_nodes)[6u * id + 1u] = make_float4(a.b.hi.x, b.b.hi.x, c.b.hi.x, d.b.hi.x);
@@ -464,6 +530,7 @@ INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChil
     V(bvh_links)[2u * id] = make_uint4(a.ref, b.ref, c.ref, d.ref);
     V(bvh_links)[2u * id + 1u] = make_uint4(a.count, b.count, c.count, d.count);
 }
+#endif
 
 INLINE void bvh_write_kernel(CTX_PARAM uint node) {
     if (V(bvh_node_count) == 0u) {
@@ -500,6 +567,56 @@ INLINE void bvh_records_kernel(CTX_PARAM uint i) {
 #if defined(KERNEL_bvh_ls_flags) || defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
 INLINE uint comp4u(uint4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
 INLINE float comp4(float4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
+
+// A node's slots in either layout (top of this file): the refs, the counts, and the 6 planes of
+// the 4 boxes side by side (lo.x of slots 0..3, hi.x, ...), as the slab tests take them.
+STRUCT(BvhPlanes) { float4 lx; float4 hx; float4 ly; float4 hy; float4 lz; float4 hz; };
+#ifdef BVH_QUANTIZED
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return V(bvh_qnodes)[4u * node + 3u]; }
+INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) {
+    uint c = V(bvh_qnodes)[4u * node + 2u].z;
+    return make_uint4(c & 0xffu, (c >> 8) & 0xffu, (c >> 16) & 0xffu, c >> 24);
+}
+INLINE float4 bvh_q_bytes(uint w) {  // the 4 bytes of a word as floats, slot k from byte k
+    return make_float4(F32(w & 0xffu), F32((w >> 8) & 0xffu), F32((w >> 16) & 0xffu), F32(w >> 24));
+}
+// origin + q * step, as the build checked it (PRECISE: no compiler may reorder it with the slab
+// test's subtraction of the ray origin, which would round differently).
+INLINE float4 bvh_q_plane(float org, uint e, uint w) {
+    PRECISE float4 p = make_float4(org, org, org, org) + bvh_q_bytes(w) * bvh_q_step(e);
+    return p;
+}
+INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
+    uint4 h = V(bvh_qnodes)[4u * node];
+    uint4 xy = V(bvh_qnodes)[4u * node + 1u];
+    uint4 z = V(bvh_qnodes)[4u * node + 2u];
+    float ox = as_float(h.x), oy = as_float(h.y), oz = as_float(h.z);
+    uint ex = h.w & 0xffu, ey = (h.w >> 8) & 0xffu, ez = (h.w >> 16) & 0xffu;
+    BvhPlanes p;
+    p.lx = bvh_q_plane(ox, ex, xy.x);
+    p.hx = bvh_q_plane(ox, ex, xy.y);
+    p.ly = bvh_q_plane(oy, ey, xy.z);
+    p.hy = bvh_q_plane(oy, ey, xy.w);
+    p.lz = bvh_q_plane(oz, ez, z.x);
+    p.hz = bvh_q_plane(oz, ez, z.y);
+    return p;
+}
+#else
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return V(bvh_links)[2u * node]; }
+INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) { return V(bvh_links)[2u * node + 1u]; }
+#ifndef KERNEL_bvh_ls_flags  // the flags read counts only: that kernel binds bvh_links alone
+INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
+    BvhPlanes p;
+    p.lx = V(bvh_nodes)[6u * node];
+    p.hx = V(bvh_nodes)[6u * node + 1u];
+    p.ly = V(bvh_nodes)[6u * node + 2u];
+    p.hy = V(bvh_nodes)[6u * node + 3u];
+    p.lz = V(bvh_nodes)[6u * node + 4u];
+    p.hz = V(bvh_nodes)[6u * node + 5u];
+    return p;
+}
+#endif
+#endif
 #endif
 
 #if defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh_ls)
@@ -523,20 +640,19 @@ INLINE Box bvh_ls_box(Box b) {
     return padded;
 }
 
-// The box of slot `slot` of node `node` (bvh_nodes layout above).
+// The box of slot `slot` of node `node` (as the traversal's slab test sees it, in either layout).
 INLINE Box bvh_slot_box(CTX_PARAM uint node, uint slot) {
+    BvhPlanes p = bvh_node_planes(CTX_ARG node);
     Box b;
-    b.lo = make_float3(comp4(V(bvh_nodes)[6u * node], slot), comp4(V(bvh_nodes)[6u * node + 2u], slot),
-                       comp4(V(bvh_nodes)[6u * node + 4u], slot));
-    b.hi = make_float3(comp4(V(bvh_nodes)[6u * node + 1u], slot), comp4(V(bvh_nodes)[6u * node + 3u], slot),
-                       comp4(V(bvh_nodes)[6u * node + 5u], slot));
+    b.lo = make_float3(comp4(p.lx, slot), comp4(p.ly, slot), comp4(p.lz, slot));
+    b.hi = make_float3(comp4(p.hx, slot), comp4(p.hy, slot), comp4(p.hz, slot));
     return b;
 }
 #endif
 
 #ifdef KERNEL_bvh_ls_flags
 INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
-    uint count = comp4u(V(bvh_links)[2u * (cell >> 2) + 1u], cell & 3u);
+    uint count = comp4u(bvh_slot_counts(CTX_ARG cell >> 2), cell & 3u);
     V(ls_flags)[cell] = count > V(ls_min_count) ? 1u : 0u;
 }
 #endif
@@ -547,8 +663,8 @@ INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
     if (V(ls_ids)[cell + 1u] == c) return;
     uint node = cell >> 2;
     uint slot = cell & 3u;
-    uint first = comp4u(V(bvh_links)[2u * node], slot);
-    uint count = comp4u(V(bvh_links)[2u * node + 1u], slot);
+    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
+    uint count = comp4u(bvh_slot_counts(CTX_ARG node), slot);
     Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
     float3 lo = to_grid(CTX_ARG b.lo);
     float3 hi = to_grid(CTX_ARG b.hi);
@@ -588,8 +704,8 @@ INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf
 INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     uint node = cell >> 2;
     uint slot = cell & 3u;
-    uint first = comp4u(V(bvh_links)[2u * node], slot);
-    Candidates c = plain_list(first, first + comp4u(V(bvh_links)[2u * node + 1u], slot));
+    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
+    Candidates c = plain_list(first, first + comp4u(bvh_slot_counts(CTX_ARG node), slot));
 #ifdef LEAF_LINE_SPACE
     Box leaf = bvh_slot_box(CTX_ARG node, slot);
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
@@ -626,8 +742,8 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         sp += 1;                                                             \
     }
 // A pushed entry's data is prefetched (PREFETCH: CPUs only), so that its loads meet the cache when
-// it is popped: a node's two lines of bvh_nodes (96 bytes at 96 * ref) and its line of bvh_links,
-// a leaf's records (LIST_ORDER_RECORDS: their first and last line; both lines of a leaf of 2) or
+// it is popped: a node's two lines of bvh_nodes (96 bytes at 96 * ref) and its line of bvh_links
+// (a quantized node: its one line of bvh_qnodes), a leaf's records (LIST_ORDER_RECORDS: their first and last line; both lines of a leaf of 2) or
 // its list. PoCL, Sponza 512² incoherent rays, with the records in list order: 0.87 of the device
 // time (docs/profiles.md, section 9).
 #ifdef LIST_ORDER_RECORDS
@@ -638,12 +754,18 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 #else
 #define BVH_PREFETCH_LEAF(ref_, count_) PREFETCH(&V(voxel_tris)[ref_]);
 #endif
+#ifdef BVH_QUANTIZED
+#define BVH_PREFETCH_NODE(ref_) PREFETCH(&V(bvh_qnodes)[4u * (ref_)]);
+#else
+#define BVH_PREFETCH_NODE(ref_) {                                             \
+        PREFETCH(&V(bvh_nodes)[6u * (ref_)]);                                 \
+        PREFETCH(&V(bvh_nodes)[6u * (ref_) + 5u]);                            \
+        PREFETCH(&V(bvh_links)[2u * (ref_)]);                                 \
+    }
+#endif
 #define BVH_PREFETCH_ENTRY(ref_, count_) {                                    \
-        if ((count_) == 0u) {                                                 \
-            PREFETCH(&V(bvh_nodes)[6u * (ref_)]);                             \
-            PREFETCH(&V(bvh_nodes)[6u * (ref_) + 5u]);                        \
-            PREFETCH(&V(bvh_links)[2u * (ref_)]);                             \
-        } else BVH_PREFETCH_LEAF(ref_, count_)                                \
+        if ((count_) == 0u) BVH_PREFETCH_NODE(ref_)                           \
+        else BVH_PREFETCH_LEAF(ref_, count_)                                  \
     }
 // The stack entry of slot k_ of `node`: its child node, or the leaf by its cell 4 * node + slot.
 #define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_))
@@ -744,18 +866,19 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // The single ray's node visit: the slab test of a node's 4 slots at once in float4 lanes.
 #define BVH_VISIT_RAY {                                                                 \
         tr = trace_tick(tr);                                                           \
-        float4 ax = (V(bvh_nodes)[6u * node] - ox) * inv.x;                            \
-        float4 bx = (V(bvh_nodes)[6u * node + 1u] - ox) * inv.x;                       \
-        float4 ay = (V(bvh_nodes)[6u * node + 2u] - oy) * inv.y;                       \
-        float4 by = (V(bvh_nodes)[6u * node + 3u] - oy) * inv.y;                       \
-        float4 az = (V(bvh_nodes)[6u * node + 4u] - oz) * inv.z;                       \
-        float4 bz = (V(bvh_nodes)[6u * node + 5u] - oz) * inv.z;                       \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG node);                                  \
+        float4 ax = (pl.lx - ox) * inv.x;                                              \
+        float4 bx = (pl.hx - ox) * inv.x;                                              \
+        float4 ay = (pl.ly - oy) * inv.y;                                              \
+        float4 by = (pl.hy - oy) * inv.y;                                              \
+        float4 az = (pl.lz - oz) * inv.z;                                              \
+        float4 bz = (pl.hz - oz) * inv.z;                                              \
         float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));          \
         float best = tr.best.t;                                                        \
         float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,   \
                         make_float4(best, best, best, best));                          \
-        uint4 refs = V(bvh_links)[2u * node];                                          \
-        uint4 counts = V(bvh_links)[2u * node + 1u];                                   \
+        uint4 refs = bvh_slot_refs(CTX_ARG node);                                      \
+        uint4 counts = bvh_slot_counts(CTX_ARG node);                                  \
         BVH_SLOTS(tn, tf, refs, counts)                                                \
     }
 
@@ -843,8 +966,8 @@ STRUCT(Packet) {
 INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, uint e) {
     uint node = (e & ~BVH_LEAF) >> 2;
     uint slot = e & 3u;
-    uint first = comp4u(V(bvh_links)[2u * node], slot);
-    uint end = first + comp4u(V(bvh_links)[2u * node + 1u], slot);
+    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
+    uint end = first + comp4u(bvh_slot_counts(CTX_ARG node), slot);
     for (uint i = first; i < end; ++i) {
         uint tri = V(voxel_tris)[i];
 #ifdef LIST_ORDER_RECORDS
@@ -913,11 +1036,10 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
 #define BVH_VISIT_PACKET {                                                                      \
         BVH_PACKET_TICK                                                                         \
         floatP best = VLOADP(0, prune);                                                         \
-        float4 lx = V(bvh_nodes)[6u * node], hx = V(bvh_nodes)[6u * node + 1u];                 \
-        float4 ly = V(bvh_nodes)[6u * node + 2u], hy = V(bvh_nodes)[6u * node + 3u];            \
-        float4 lz = V(bvh_nodes)[6u * node + 4u], hz = V(bvh_nodes)[6u * node + 5u];            \
-        uint4 refs = V(bvh_links)[2u * node];                                                   \
-        uint4 counts = V(bvh_links)[2u * node + 1u];                                            \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG node);                                           \
+        float4 lx = pl.lx, hx = pl.hx, ly = pl.ly, hy = pl.hy, lz = pl.lz, hz = pl.hz;          \
+        uint4 refs = bvh_slot_refs(CTX_ARG node);                                               \
+        uint4 counts = bvh_slot_counts(CTX_ARG node);                                           \
         BVH_PACKET_SLOT(0u, x)                                                                  \
         BVH_PACKET_SLOT(1u, y)                                                                  \
         BVH_PACKET_SLOT(2u, z)                                                                  \
