@@ -31,7 +31,7 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    - "quantized", 64 bytes per node (bvh_qnodes: the boxes in 8 bits per plane on power-of-two
      steps of the node's own box, conservative in float32): where work items run in SIMD lanes
      (llvmpipe, GPUs). llvmpipe loads every lane's value on its own (docs/profiles.md, section 10),
-     so half the loads per visit: 0.85-0.91 of the device time there (Sponza and BMW 256²,
+     so half the loads per visit: 0.85-0.90 of the device time there (Sponza and BMW 256²,
      primary and incoherent rays); PoCL's scalar walk pays for the decoding instead (1.13 on Sponza
      incoherent rays) and keeps float boxes (docs/profiles.md, section 14).
 7. Records (bvh only): the triangles' records (trace.h, 48 bytes each) gathered into leaf order
