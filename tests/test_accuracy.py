@@ -2,6 +2,7 @@
 threshold hid, on every structure and both backends, and the gate's zero-unexplained rule."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -15,7 +16,7 @@ from helpers import check_structure, explain, structure_params
 from lsbench import backends
 from lsbench.backends import GridGeometry
 from lsbench.commands.gate import gate_failures
-from lsbench.inputs.rays import RaySet, primary_rays
+from lsbench.inputs.rays import RaySet, make_rays, primary_rays
 from lsbench.inputs.scenario import Case, RunSettings
 from lsbench.inputs.scene import Camera, Scene
 from lsbench.inputs.scenes import load_scene
@@ -189,6 +190,33 @@ def test_far_offset_scene(device, structure, offset):
     params = structure_params(structure)
     out = check_structure(device, structure, scene, params["resolution"], params["ls_n"])
     assert out["unexplained"] == [], explain(out)
+
+
+@pytest.mark.parametrize("exponent", [34, -46])
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_scenes_of_any_scale_are_hit_as_at_unit_scale(device, structure, exponent):
+    """Cornell scaled by 2^34 (edges of 3e10 units) and by 2^-46 (3e-14 units), the rays scaled with
+    it: a power of two scales every float32 operation exactly, so each ray must hit the triangle it
+    hits at unit scale at exactly 2^k times the distance, and Embree's check must explain every
+    answer. (The hit distance took the plane normal's squared length, a 4th power of the edges:
+    past ~4e9 units it overflowed and every such triangle was a miss; and n . (p - o), edge^2 x
+    distance, fell into float32's denormals in scenes of ~1e-13 units, t then off by up to 1e-3;
+    geometry.h: triangle_plane_t.)"""
+    base = load_scene("cornell")
+    scale = 2.0 ** exponent
+    scene = Scene(f"cornell-2^{exponent}", (base.vertices.astype(np.float64) * scale).astype(np.float32),
+                  base.faces, "test:scale")
+    params = structure_params(structure)
+    sets = [primary_rays(base, 24, 24), make_rays("incoherent", base, 24, 24, None, {})]
+    for rays in sets:
+        scaled = dataclasses.replace(rays, origins=(rays.origins.astype(np.float64) * scale).astype(np.float32),
+                                     _hash=None)
+        unit = check_structure(device, structure, base, params["resolution"], params["ls_n"], rays=rays)
+        out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=scaled)
+        assert out["unexplained"] == [], explain(out)
+        assert np.array_equal(out["hits"].prim_ids, unit["hits"].prim_ids), rays.name
+        assert np.array_equal(out["hits"].distances, (unit["hits"].distances * np.float32(scale)).astype(np.float32)), \
+            rays.name
 
 
 # --- items 1, 2, 4: records and the gate ---------------------------------------------------------

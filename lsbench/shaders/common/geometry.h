@@ -92,8 +92,20 @@ INLINE float3 wray_vertex(WRay r, float3 v) {
 // distance reported (the BVH's packets found it: docs/profiles.md, section 8). There the edge
 // test's own point is reported: t_edge, the depth Woop et al. interpolate from the sheared
 // vertices (on the triangle, to rounding).
+// The edges are first scaled by the power of two that brings their largest component into [1, 2):
+// exact, and t is a ratio of two dot products with n, so the result is the same to the bit, but
+// float32's range no longer limits the scene's scale: dot(n, n), a 4th power of the edges, was inf
+// past edges of ~4e9 units (every such triangle a miss), and dot(n, p - o), edge^2 x distance, fell
+// into the denormals in scenes of ~1e-13 units (t off by 1e-3; tests/test_accuracy.py).
 INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo, float zhi, float t_edge) {
     float3 e0 = v1 - v0, e1 = v2 - v1, e2 = v0 - v2;
+    float3 emax3 = max(max(fabs(e0), fabs(e1)), fabs(e2));
+    float emax = max(emax3.x, max(emax3.y, emax3.z));
+    if (!(emax > 0.0f)) return INF_F;  // all three vertices in one point: no surface
+    float unit = as_float(U32(clamp(254 - I32((as_uint(emax) >> 23) & 0xffu), 1, 254)) << 23);  // 2^-floor(log2 emax)
+    e0 = e0 * unit;
+    e1 = e1 * unit;
+    e2 = e2 * unit;
     float l0 = dot(e0, e0), l1 = dot(e1, e1), l2 = dot(e2, e2);
     float3 lng = l0 >= l1 && l0 >= l2 ? e0 : (l1 >= l2 ? e1 : e2);
     float3 n = l0 >= l1 && l0 >= l2 ? cross(e1, e2) : (l1 >= l2 ? cross(e2, e0) : cross(e0, e1));
