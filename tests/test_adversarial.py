@@ -14,8 +14,9 @@ from helpers import check_structure, explain, structure_params
 from lsbench import backends
 from lsbench.inputs.adversarial import RAY_CATEGORIES
 from lsbench.inputs.rays import RAY_SETS, RaySet, adversarial_rays, make_rays
+from lsbench.inputs.scene import Scene
 from lsbench.inputs.scenes import load_scene
-from lsbench.oracle.classifier import classify_disagreements as classify
+from lsbench.oracle.classifier import _triangles_near_ray, classify_disagreements as classify
 from lsbench.oracle.embree import embree_closest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -81,6 +82,43 @@ def test_classifier_catches_a_leak_and_a_wrong_hit():
     ref_p, ref_t = embree_closest(two, rays, use_cache=False)
     behind = classify(two, rays, np.array([2]), np.array([2.0]), ref_p, ref_t)
     assert ref_t[0] == pytest.approx(1.0) and behind["counts"] == {"unexplained": 1}
+
+
+@pytest.mark.parametrize("exponent", [-46, 34])
+def test_classifier_judges_a_scene_the_same_at_any_scale(exponent):
+    """The adversarial rays of the Cornell box, with Embree's answers as given and with planted
+    errors (a miss, a distance 0.1 % long, a triangle behind), classified at unit scale and with
+    scene and origins scaled by 2^k: every label the same. (A + 1.0 in the length of the segment
+    that stands for the ray made a 1e-14-sized scene look near every ray: the labels came from
+    other triangles and one disagreement of Sponza took minutes.)"""
+    base = load_scene("cornell")
+    rays, _ = adversarial_rays(base)
+    ref_p, ref_t = embree_closest(base, rays, use_cache=False)
+    rng = np.random.default_rng(3)
+    hit = np.flatnonzero(ref_p >= 0)
+    p, t = ref_p.copy(), ref_t.copy()
+    missed, longer, behind = np.split(rng.choice(hit, 30, replace=False), 3)
+    p[missed], t[missed] = -1, np.inf
+    t[longer] = t[longer] * np.float32(1.001)
+    p[behind] = (p[behind] + 7) % base.triangle_count
+    scale = 2.0 ** exponent
+    scene = Scene(f"cornell-2^{exponent}", (base.vertices.astype(np.float64) * scale).astype(np.float32),
+                  base.faces, "test:scale")
+    scaled = RaySet("scaled", (rays.origins.astype(np.float64) * scale).astype(np.float32), rays.directions)
+    unit = classify(base, rays, p, t, ref_p, ref_t)
+    big = classify(scene, scaled, p, (t * scale).astype(np.float32), ref_p, (ref_t * scale).astype(np.float32))
+    assert unit["counts"].get("unexplained", 0) >= 10, unit["counts"]  # the planted errors are seen
+    assert list(big["labels"]) == list(unit["labels"]), (big["counts"], unit["counts"])
+    # and each ray is checked against the same few triangles near it (a 1e-14 scene: not all of them)
+    for tris, rs in ((base.triangles, rays), (scene.triangles, scaled)):
+        t64 = tris.astype(np.float64)
+        m = float(np.abs(tris).max())
+        near = [_triangles_near_ray(t64.min(axis=1), t64.max(axis=1), o.astype(np.float64), d.astype(np.float64),
+                                    max(m, float(np.abs(o).max()))).tolist()
+                for o, d in zip(rs.origins[:200], rs.directions[:200])]
+        if rs is rays:
+            unit_near = near
+    assert near == unit_near
 
 
 def test_planted_defect_is_unexplained(monkeypatch):

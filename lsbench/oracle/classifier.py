@@ -111,6 +111,15 @@ def _point_triangle_dist(p, tris):
     return np.where(inside, np.minimum(plane, edge_d), edge_d)
 
 
+def _segment_length(m: float, o) -> float:
+    """The length of the segment that stands for the ray: beyond anything in a scene whose vertices
+    lie within m of the origin (4 (m + |o|) > 2 (m + |o|) >= the distance from o to any of them).
+    Relative to the scene's own scale, so that the pads and tolerances derived from it are too: an
+    absolute term here (it was + 1.0) made a scene of size 1e-14 look near every ray, and the
+    classification of one disagreement then took minutes."""
+    return 4.0 * max(m + float(np.abs(o).max()), float(np.finfo(np.float32).tiny))
+
+
 class _RayEval:
     """Float64 facts about one ray against the triangles `tris` (those near it)."""
 
@@ -119,7 +128,7 @@ class _RayEval:
         F = len(tris)
         a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
         # ray as a long segment; the far end beyond anything in the scene
-        L = 4.0 * (M + np.abs(o).max() + 1.0)
+        L = _segment_length(M, o)
         far = o + d * L
         self.eps_of = lambda t: POS_EPS_ULPS * EPS32 * (M + np.abs(t))
         # boundary distance (3 edges) and the ray parameter of the closest approach
@@ -243,6 +252,13 @@ def _near_ray(lo, hi, o, d, pad: float, length: float) -> np.ndarray:
     return np.flatnonzero((t_near <= t_far) & (t_far >= 0) & (t_near <= length))
 
 
+def _triangles_near_ray(tri_lo, tri_hi, o, d, m: float) -> np.ndarray:
+    """The triangles (by their float64 boxes) within the position tolerance of the ray's segment
+    (_RayEval's: beyond the whole scene), m the scene's and the origin's largest coordinate."""
+    length = _segment_length(m, o)
+    return _near_ray(tri_lo, tri_hi, o, d, 2 * POS_EPS_ULPS * EPS32 * (m + length), length)
+
+
 def classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_distances,
                            rel_tol: float = 1e-4, abs_tol: float | None = None,
                            max_rays: int = MAX_CLASSIFIED_RAYS) -> dict:
@@ -273,8 +289,7 @@ def classify_disagreements(scene, rays, prim_ids, distances, ref_prim_ids, ref_d
         o = rays.origins[i].astype(np.float64)
         d = rays.directions[i].astype(np.float64)
         m = max(M, float(np.abs(o).max()))
-        length = 4.0 * (m + np.abs(o).max() + 1.0)  # _RayEval's segment: beyond the whole scene
-        near = _near_ray(tri_lo, tri_hi, o, d, 2 * POS_EPS_ULPS * EPS32 * (m + length), length)
+        near = _triangles_near_ray(tri_lo, tri_hi, o, d, m)
         local = {int(f): k for k, f in enumerate(near)}
         ev = _RayEval(tris[near], o, d, m, rel_tol, abs_tol)
 
