@@ -126,7 +126,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                 t_top = min(t_top, min(min(cx, cy), cz));
                 uint d_anc = V(esvo_nodes)[node];
                 uint a_slot = ((ax & 1u) | ((ay & 1u) << 1) | ((az & 1u) << 2)) ^ mirror;
-                node = (d_anc >> 8) + oct_rank_in_word(d_anc & 0xffu, a_slot);
+                node = (d_anc >> 8) + rank_in_word(d_anc & 0xffu, a_slot);
             }
         }
         while (scale < ESVO_SMAX) {
@@ -145,7 +145,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                 float ty_center = half_edge * ty_coef + ty_corner;
                 float tz_center = half_edge * tz_coef + tz_corner;
                 if (t_min <= tv_max) {
-                    uint child = (desc >> 8) + oct_rank_in_word(desc & 0xffu, slot);
+                    uint child = (desc >> 8) + rank_in_word(desc & 0xffu, slot);
                     if (scale == leaf_scale) {
                         // Leaf: test its candidates; done once the closest hit lies in it.
                         float t_exit = tc_max / dlen;

@@ -4,6 +4,12 @@
 INLINE float comp3(float3 v, int i) { return i == 0 ? v.x : (i == 1 ? v.y : v.z); }
 INLINE int icomp3(int3 v, int i) { return i == 0 ? v.x : (i == 1 ? v.y : v.z); }
 
+// Number of bits below `bit` (0..31) that are set in `word`: a node's child slot in its packed
+// children (octree.h), a shaft's set among its cell's heads (linespace.h).
+INLINE uint rank_in_word(uint word, uint bit) {
+    return bit == 0u ? 0u : POPCOUNT(word & ((1u << bit) - 1u));
+}
+
 // 1/x that maps +0 and -0 to +/-infinity by sign bit, so axis-parallel rays never divide by
 // zero and the slab test below sees an infinite slope instead of NaN.
 // A non-zero |x| below ~2.9e-39 (a denormal direction component) would give 1/x = inf, and

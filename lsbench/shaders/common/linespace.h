@@ -1013,8 +1013,7 @@ INLINE void ls_head_counts_kernel(CTX_PARAM uint w) {
 // counting the words from the cell's first shaft took up to 15 N^4 / 32 (38 at N = 3).
 INLINE uint ls_heads_before(CTX_PARAM uint x) {
     uint w = x >> 5u;
-    uint below = (x & 31u) == 0u ? 0u : V(ls_set_heads)[w] & (0xffffffffu >> (32u - (x & 31u)));
-    return V(ls_head_counts)[w] + POPCOUNT(below);
+    return V(ls_head_counts)[w] + rank_in_word(V(ls_set_heads)[w], x & 31u);
 }
 
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {

@@ -51,11 +51,6 @@ INLINE uint oct_voxel(CTX_PARAM uint m) {
     return U32(c.x) + U32(r.x) * (U32(c.y) + U32(r.y) * U32(c.z));
 }
 
-// Number of bits below `bit` that are set in `word`.
-INLINE uint oct_rank_in_word(uint word, uint bit) {
-    return bit == 0u ? 0u : POPCOUNT(word & ((1u << bit) - 1u));
-}
-
 #ifdef KERNEL_oct_flag_leaves
 // ---- Build 1: flag the leaf level, one work item per word (32 cells, no atomics) ----------
 INLINE void oct_flag_leaves_kernel(CTX_PARAM uint gid) {
@@ -124,13 +119,13 @@ INLINE OctNode oct_internal_node(CTX_PARAM uint gid) {
     if (n.flagged == 0u) return n;  // also the padding bits of levels 0 and 1 (fewer than 32 cells)
     uint l = 0u;
     while (V(level_words)[l + 1u] <= word) l += 1u;
-    n.id = V(oct_ranks)[word] + oct_rank_in_word(bits, b);
+    n.id = V(oct_ranks)[word] + rank_in_word(bits, b);
     uint c = 32u * (word - V(level_words)[l]) + b;
     uint cw = V(level_words)[l + 1u] + ((8u * c) >> 5);
     uint shift = (8u * c) & 31u;
     uint cword = V(oct_bits)[cw];
     n.mask = (cword >> shift) & 0xffu;
-    n.first = V(oct_ranks)[cw] + oct_rank_in_word(cword, shift);
+    n.first = V(oct_ranks)[cw] + rank_in_word(cword, shift);
     n.to_leaves = l + 1u == depth ? 1u : 0u;
     if (n.to_leaves != 0u) n.first -= V(oct_ranks)[V(level_words)[depth]];  // index into `leaves`
     return n;
@@ -149,7 +144,7 @@ INLINE OctLeaf oct_leaf(CTX_PARAM uint m) {
     uint bits = V(oct_bits)[start + (m >> 5)];
     OctLeaf lf;
     lf.flagged = (bits >> (m & 31u)) & 1u;
-    lf.id = V(oct_ranks)[start + (m >> 5)] - V(oct_ranks)[start] + oct_rank_in_word(bits, m & 31u);
+    lf.id = V(oct_ranks)[start + (m >> 5)] - V(oct_ranks)[start] + rank_in_word(bits, m & 31u);
     return lf;
 }
 #endif

@@ -12,7 +12,7 @@ INLINE void svo_create_kernel(CTX_PARAM uint gid) {
     if (n.flagged == 0u) return;
     for (uint k = 0u; k < 8u; ++k) {
         // A leaf child is stored as leaf index + 1, so 0 stays "empty".
-        uint child = ((n.mask >> k) & 1u) != 0u ? n.first + oct_rank_in_word(n.mask, k) + n.to_leaves : 0u;
+        uint child = ((n.mask >> k) & 1u) != 0u ? n.first + rank_in_word(n.mask, k) + n.to_leaves : 0u;
         V(svo_nodes)[8u * n.id + k] = child;
     }
 }
