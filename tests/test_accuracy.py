@@ -207,16 +207,16 @@ def test_scenes_of_any_scale_are_hit_as_at_unit_scale(device, structure, exponen
     scene = Scene(f"cornell-2^{exponent}", (base.vertices.astype(np.float64) * scale).astype(np.float32),
                   base.faces, "test:scale")
     params = structure_params(structure)
+    # primary and incoherent rays in one closest-hit set: one build per scale traces both
     sets = [primary_rays(base, 24, 24), make_rays("incoherent", base, 24, 24, None, {})]
-    for rays in sets:
-        scaled = dataclasses.replace(rays, origins=(rays.origins.astype(np.float64) * scale).astype(np.float32),
-                                     _hash=None)
-        unit = check_structure(device, structure, base, params["resolution"], params["ls_n"], rays=rays)
-        out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=scaled)
-        assert out["unexplained"] == [], explain(out)
-        assert np.array_equal(out["hits"].prim_ids, unit["hits"].prim_ids), rays.name
-        assert np.array_equal(out["hits"].distances, (unit["hits"].distances * np.float32(scale)).astype(np.float32)), \
-            rays.name
+    rays = RaySet("primary+incoherent", np.concatenate([r.origins for r in sets]),
+                  np.concatenate([r.directions for r in sets]))
+    scaled = dataclasses.replace(rays, origins=(rays.origins.astype(np.float64) * scale).astype(np.float32))
+    unit = check_structure(device, structure, base, params["resolution"], params["ls_n"], rays=rays)
+    out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=scaled)
+    assert out["unexplained"] == [], explain(out)
+    assert np.array_equal(out["hits"].prim_ids, unit["hits"].prim_ids)
+    assert np.array_equal(out["hits"].distances, (unit["hits"].distances * np.float32(scale)).astype(np.float32))
 
 
 # --- items 1, 2, 4: records and the gate ---------------------------------------------------------
