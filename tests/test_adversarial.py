@@ -110,15 +110,14 @@ def test_classifier_judges_a_scene_the_same_at_any_scale(exponent):
     assert unit["counts"].get("unexplained", 0) >= 10, unit["counts"]  # the planted errors are seen
     assert list(big["labels"]) == list(unit["labels"]), (big["counts"], unit["counts"])
     # and each ray is checked against the same few triangles near it (a 1e-14 scene: not all of them)
-    for tris, rs in ((base.triangles, rays), (scene.triangles, scaled)):
+    def near_sets(tris, rs):
         t64 = tris.astype(np.float64)
         m = float(np.abs(tris).max())
-        near = [_triangles_near_ray(t64.min(axis=1), t64.max(axis=1), o.astype(np.float64), d.astype(np.float64),
+        return [_triangles_near_ray(t64.min(axis=1), t64.max(axis=1), o.astype(np.float64), d.astype(np.float64),
                                     max(m, float(np.abs(o).max()))).tolist()
                 for o, d in zip(rs.origins[:200], rs.directions[:200])]
-        if rs is rays:
-            unit_near = near
-    assert near == unit_near
+
+    assert near_sets(scene.triangles, scaled) == near_sets(base.triangles, rays)
 
 
 def test_planted_defect_is_unexplained(monkeypatch):
