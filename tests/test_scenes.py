@@ -21,6 +21,7 @@ BUILTIN_COUNTS = {
     "quad": (2, 2),
     "two-planes": (4, 4),
     "adversarial": (2520, 2520),
+    "mixed-scale": (3002, 3002),
 }
 
 

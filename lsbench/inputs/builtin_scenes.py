@@ -395,6 +395,19 @@ def _build_adversarial() -> Scene:
     return _scene("adversarial", [_instances(box, ADVERSARIAL_OFFSET)], camera)
 
 
+def _build_mixed_scale() -> Scene:
+    """A ground 2e5 units wide (z = 0, two triangles) and 3000 triangles of ~2e-3 units within 0.5
+    of (0, 0, 0.6): every structure's cells are thousands of units wide there, so rays starting
+    thousands of units from the small triangles test them in their cells, where float32 products
+    of coordinates ~|v - o|^2 agree in all their leading bits (geometry.h: ray_triangle_wt)."""
+    rng = np.random.default_rng(20261204)
+    h = 1e5
+    ground = [[[-h, -h, 0], [h, -h, 0], [h, h, 0]], [[-h, -h, 0], [h, h, 0], [-h, h, 0]]]
+    small = rng.uniform(-0.5, 0.5, (3000, 1, 3)) + rng.normal(0.0, 1e-3, (3000, 3, 3)) + np.array([0.0, 0.0, 0.6])
+    camera = Camera(eye=(0.0, -3.0, 1.5), target=(0.0, 0.0, 0.5), up=(0.0, 0.0, 1.0), fov_deg=50.0)
+    return _scene("mixed-scale", [_triangles(np.concatenate([np.array(ground, np.float64), small]))], camera)
+
+
 BUILTIN_SCENES: dict[str, Callable[[], Scene]] = {
     "atrium": _build_atrium,
     "cornell": _build_cornell,
@@ -403,4 +416,5 @@ BUILTIN_SCENES: dict[str, Callable[[], Scene]] = {
     "quad": _build_quad,
     "two-planes": _build_two_planes,
     "adversarial": _build_adversarial,
+    "mixed-scale": _build_mixed_scale,
 }
