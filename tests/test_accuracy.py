@@ -219,6 +219,50 @@ def test_scenes_of_any_scale_are_hit_as_at_unit_scale(device, structure, exponen
     assert np.array_equal(out["hits"].distances, (unit["hits"].distances * np.float32(scale)).astype(np.float32))
 
 
+def mixed_scale_case() -> tuple[Scene, RaySet, int]:
+    """The built-in `mixed-scale` scene (a ground 2e5 units wide, 3000 triangles of ~2e-3 units
+    within 0.5 of (0, 0, 0.6)); rays starting 1000-6000 units from the small triangles, in their
+    cells (every structure's cells are thousands of units wide here), upwards in random
+    directions: these pass them far away and all miss. Then rays aimed at small triangles'
+    centroids from ~4000 units away. Returns the scene, the rays and how many pass beside."""
+    rng = np.random.default_rng(5)
+    scene = load_scene("mixed-scale")
+    small = scene.triangles[2:].astype(np.float64)
+    beside = 400
+    angle, radius = rng.uniform(0, 2 * np.pi, beside), rng.uniform(1000, 6000, beside)
+    o = np.stack([radius * np.cos(angle), radius * np.sin(angle), rng.uniform(0.1, 1.0, beside)], axis=1)
+    d = rng.normal(size=(beside, 3))
+    d[:, 2] = np.abs(d[:, 2]) + 0.05  # upwards: never the ground
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    to_centre = np.array([0.0, 0.0, 0.6]) - o
+    off_line = np.linalg.norm(to_centre - (to_centre * d).sum(axis=1, keepdims=True) * d, axis=1)
+    assert off_line.min() > 10.0  # every such line passes far from the small triangles
+    centroids = small.mean(axis=1)[rng.integers(0, len(small), 200)]
+    o2 = centroids + rng.normal(0, 1, (200, 3)) * np.array([1, 1, 0.05]) * 4000 + np.array([0, 0, 3000])
+    d2 = centroids - o2
+    d = np.concatenate([d, d2])
+    rays = RaySet("beside+aimed", np.concatenate([o, o2]).astype(np.float32),
+                  (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32))
+    return scene, rays, beside
+
+
+@pytest.mark.parametrize("structure", STRUCTURES)
+def test_small_triangles_far_from_the_origin_are_hit_only_where_the_ray_meets_them(device, structure):
+    """The watertight test's edge functions are differences of two products (~1e7 for a triangle
+    6000 units from the ray origin) whose true value is ~1: the rounding decided their signs, and
+    some came out all "inside", a hit reported thousands of units from the triangle (54 of the 400
+    rays beside the small triangles on grid opencl). Every ray passing beside them must miss
+    (geometry.h: the sheared bounds' test), and the ones aimed at them must agree with Embree."""
+    scene, rays, beside = mixed_scale_case()
+    params = structure_params(structure)
+    out = check_structure(device, structure, scene, params["resolution"], params["ls_n"], rays=rays)
+    assert out["unexplained"] == [], explain(out)
+    hits = out["hits"]
+    assert (hits.prim_ids[:beside] == -1).all(), np.flatnonzero(hits.prim_ids[:beside] != -1)
+    assert (out["ref"][0][:beside] == -1).all()  # Embree: all miss
+    assert (hits.prim_ids[beside:] >= 2).mean() > 0.5  # the aimed rays do find small triangles
+
+
 # --- items 1, 2, 4: records and the gate ---------------------------------------------------------
 
 

@@ -133,6 +133,19 @@ INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
     float3 a = wray_vertex(r, v0);
     float3 b = wray_vertex(r, v1);
     float3 c = wray_vertex(r, v2);
+    // The ray is the point (0, 0) of the sheared plane: a triangle whose sheared bounds leave it out
+    // is a miss, decided by comparisons alone. The edge functions below are differences of two
+    // products of the sheared coordinates; for a triangle small against its distance from the ray
+    // origin those products (~|v - o|^2) agree in all their leading bits, and the difference is
+    // rounding: a 2e-3 triangle 6e3 units from the origin, its line passing 3e3 units away, got
+    // (1, 0, 0) for edge values whose true signs were mixed (1.10, -0.28, -0.83), "inside", and a
+    // hit reported thousands of units from the triangle (grid, svo, esvo and the Line Spaces, both
+    // backends; tests/test_accuracy.py, mixed scales). Once (0, 0) lies within the bounds, every
+    // vertex is within the triangle's own extent of it, so the products' rounding is relative to
+    // the triangle's size. A point on a shared edge lies within both triangles' bounds (the
+    // comparisons are exact), so the test stays watertight.
+    if (min(a.x, min(b.x, c.x)) > 0.0f || max(a.x, max(b.x, c.x)) < 0.0f ||
+        min(a.y, min(b.y, c.y)) > 0.0f || max(a.y, max(b.y, c.y)) < 0.0f) return INF_F;
     PRECISE float u = c.x * b.y - c.y * b.x;
     PRECISE float v = a.x * c.y - a.y * c.x;
     PRECISE float w = b.x * a.y - b.y * a.x;
