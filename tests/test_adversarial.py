@@ -64,6 +64,26 @@ def test_adversarial_agrees_or_documented_tie(device, structure, scene_name):
     assert counts.get("agree", 0) >= 0.75 * out["rays"].count, counts
 
 
+def test_classifier_accepts_a_grazing_hit_at_its_distance_but_not_a_wrong_one():
+    """A ray at 3 degrees to a triangle, 5e-7 inside its long edge (an ambiguous triangle), and a
+    wall behind it; the reference names the wall (as Embree did in such a case, in a soup of
+    random triangles). The first triangle reported 1e-5 relative too far (rel_tol: 1e-4) lies
+    past its edge by more than pos_eps, yet it is the triangle the ray meets, at a distance within tolerance, as a
+    robust hit would be judged: both answers are acceptable. A distance off by 1e-2 is not."""
+    v = np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, -2, -2], [2, 2, -2], [2, 0, 2]])
+    scene = Scene("graze", v, np.uint32([[0, 1, 2], [3, 4, 5]]), "test")
+    d = np.array([1.0, 0.3, -0.05]) / np.linalg.norm([1.0, 0.3, -0.05])
+    target = np.array([0.6, 0.4, 0.0]) - 5e-7 * np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    rays = RaySet("graze", (target - 2.0 * d)[None].astype(np.float32), d[None].astype(np.float32))
+    o, dd = rays.origins[0].astype(np.float64), rays.directions[0].astype(np.float64)
+    t_first = -o[2] / dd[2]  # the plane z = 0
+    wall = np.array([1]), np.array([(2.0 - o[0]) / dd[0]], np.float32)  # the plane x = 2
+    ok = classify(scene, rays, np.array([0]), np.array([t_first * (1 + 1e-5)], np.float32), *wall)
+    assert ok["unexplained"] == [] and ok["labels"][0] == "grazing", ok["labels"]
+    far = classify(scene, rays, np.array([0]), np.array([t_first * (1 + 1e-2)], np.float32), *wall)
+    assert far["unexplained"] == [0]
+
+
 def test_classifier_catches_a_leak_and_a_wrong_hit():
     """The tie rules must not excuse real errors: a ray through the shared diagonal of a quad
     that hits nothing, and a hit on a triangle behind the nearest one."""
