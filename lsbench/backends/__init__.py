@@ -73,9 +73,22 @@ def geometry_for(structure: str, scene, params: BuildParams, bounds=None) -> Gri
 
 def triangle_records(scene) -> np.ndarray:
     """The traversals' copy of the triangles (kernels.TRACE_SCENE_BUFFERS): per triangle its three
-    vertices as float4 (w = 0), in face order, flattened."""
-    records = np.zeros((scene.triangle_count, 3, 4), np.float32)
-    records[:, :, :3] = np.asarray(scene.vertices, np.float32)[np.asarray(scene.faces, np.int64)]
+    vertices as float4, in face order, flattened; the w components hold the unit normal (shaders/
+    common/geometry.h: triangle_plane_t), zero for a zero-area triangle. The normal is the cross
+    product of the two shortest edges (which meet at the largest angle) in float64, where the
+    products of float32 coordinates are exact, so a sliver's normal is as good as any other's."""
+    tris = np.asarray(scene.vertices, np.float32)[np.asarray(scene.faces, np.int64)]
+    records = np.zeros((len(tris), 3, 4), np.float32)
+    records[:, :, :3] = tris
+    v = tris.astype(np.float64)
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], axis=1)
+    longest = np.argmax(np.einsum("fkj,fkj->fk", edges, edges), axis=1)
+    rows = np.arange(len(tris))
+    normal = np.cross(edges[rows, (longest + 1) % 3], edges[rows, (longest + 2) % 3])
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normal = np.where(length > 0, normal / length, 0.0)
+    records[:, :, 3] = normal
     return records.ravel()
 
 

@@ -971,9 +971,9 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
     for (uint i = first; i < end; ++i) {
         uint tri = V(voxel_tris)[i];
 #ifdef LIST_ORDER_RECORDS
-        Triangle T = load_candidate(CTX_ARG i);
+        TriRecord T = load_candidate(CTX_ARG i);
 #else
-        Triangle T = load_candidate(CTX_ARG tri);
+        TriRecord T = load_candidate(CTX_ARG tri);
 #endif
         floatP pxa = T.a.x - p->ox, pya = T.a.y - p->oy, pza = T.a.z - p->oz;
         floatP pxb = T.b.x - p->ox, pyb = T.b.y - p->oy, pzb = T.b.z - p->oz;
@@ -1001,7 +1001,7 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         VSTOREP(maybe, 0, m_);
         for (int l = 0; l < p->lanes; ++l) {
             if (m_[l] == 0) continue;
-            tr[l].best = closer(tr[l].best, ray_triangle_wt(tr[l].wr, T.a, T.b, T.c), I32(tri), tr[l].tmin);
+            tr[l].best = closer(tr[l].best, ray_triangle_wt(tr[l].wr, T.a, T.b, T.c, T.n), I32(tri), tr[l].tmin);
 #ifdef QUERY_ANY
             prune[l] = tr[l].best.prim >= 0 ? -INF_F : tr[l].best.t;
 #else

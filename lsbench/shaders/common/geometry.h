@@ -85,12 +85,18 @@ INLINE float3 wray_vertex(WRay r, float3 v) {
 // plane (as Embree's Moeller-Trumbore computes t), not the barycentric mean of the sheared
 // vertex depths, whose weights are differences of nearly equal products for a long thin
 // triangle (a 5 m x 0.7 mm strip gave t off by 5e-5 relative, pushing hits past the cell exit;
-// issue 13 item 1). The normal is the cross product of the two shortest edges (they meet at the
-// largest angle, >= 60 degrees, so it is well conditioned), made exactly perpendicular to the
-// longest edge: a sliver's plane is then only unsure about its rotation about that edge, which
-// moves the hit by ~2^-24 of the edge (issue 13 item 3: collinear triangles were hit up to 2.5e-3
-// off). A zero normal (a zero-area triangle has no surface) or a ray in the plane to float
-// precision is a miss; t stays inside the vertices' depth range [zlo, zhi] along the ray.
+// issue 13 item 1). n is the triangle's unit normal, computed once per scene in float64 on the
+// host (backends.triangle_records: the records' w components). Computed here in float32, it was
+// the largest part of the candidate test on llvmpipe, where a SIMD group runs the branch whenever
+// one of its lanes hits (Sponza 256², precomputed against computed here: grid glsl 0.70 of the
+// trace time on primary rays, esvo 0.73, grid-ls 0.81, bvh 0.85; PoCL 0.92-0.98; docs/profiles.md
+// section 15). A well-conditioned float32 normal also needed the two shortest edges' cross product
+// made perpendicular to the longest edge (issue 13 item 3: collinear triangles were hit up to
+// 2.5e-3 off) and the edges scaled by a power of two (dot(n, n) was inf past edges of ~4e9 units,
+// and dot(n, p - o) denormal in scenes of ~1e-13 units). A unit normal has neither limit, and its
+// float32 rounding moves the hit by ~2^-24 of the triangle's extent. A zero normal (a zero-area
+// triangle has no surface) or a ray in the plane to float precision is a miss; t stays inside the
+// vertices' depth range [zlo, zhi] along the ray.
 // A ray within about 0.06 degrees of the plane (|cos| < 1e-3) crosses it where rounding of the
 // crossing is large and may lie far from where the edge test found the ray on the triangle: an
 // adversarial Cornell box ray along a box face, within 1e-8 of one vertex (the edge test's "inside",
@@ -98,38 +104,19 @@ INLINE float3 wray_vertex(WRay r, float3 v) {
 // distance reported (the BVH's packets found it: docs/profiles.md, section 8). There the edge
 // test's own point is reported: t_edge, the depth Woop et al. interpolate from the sheared
 // vertices (on the triangle, to rounding).
-// The edges are first scaled by the power of two that brings their largest component into [1, 2):
-// exact, and t is a ratio of two dot products with n, so the result is the same to the bit, but
-// float32's range no longer limits the scene's scale: dot(n, n), a 4th power of the edges, was inf
-// past edges of ~4e9 units (every such triangle a miss), and dot(n, p - o), edge^2 x distance, fell
-// into the denormals in scenes of ~1e-13 units (t off by 1e-3; tests/test_accuracy.py).
-INLINE float triangle_plane_t(WRay r, float3 v0, float3 v1, float3 v2, float zlo, float zhi, float t_edge) {
-    float3 e0 = v1 - v0, e1 = v2 - v1, e2 = v0 - v2;
-    float3 emax3 = max(max(fabs(e0), fabs(e1)), fabs(e2));
-    float emax = max(emax3.x, max(emax3.y, emax3.z));
-    if (!(emax > 0.0f)) return INF_F;  // all three vertices in one point: no surface
-    float unit = as_float(U32(clamp(254 - I32((as_uint(emax) >> 23) & 0xffu), 1, 254)) << 23);  // 2^-floor(log2 emax)
-    e0 = e0 * unit;
-    e1 = e1 * unit;
-    e2 = e2 * unit;
-    float l0 = dot(e0, e0), l1 = dot(e1, e1), l2 = dot(e2, e2);
-    float3 lng = l0 >= l1 && l0 >= l2 ? e0 : (l1 >= l2 ? e1 : e2);
-    float3 n = l0 >= l1 && l0 >= l2 ? cross(e1, e2) : (l1 >= l2 ? cross(e2, e0) : cross(e0, e1));
-    float ll = max(l0, max(l1, l2));
-    if (ll > 0.0f) n = n - lng * (dot(n, lng) / ll);
+INLINE float triangle_plane_t(WRay r, float3 v0, float3 n, float zlo, float zhi, float t_edge) {
     float den = dot(n, r.d);
     // in the plane to float precision (|cos| <= 2^-23; also n = 0): the edge test's "inside" is
     // rounding, and no distance along the ray is meaningful
-    float len = sqrt(dot(n, n));
-    if (fabs(den) <= 1.1920929e-7f * len) return INF_F;
-    if (fabs(den) < 1e-3f * len) return clamp(t_edge, zlo, zhi);  // grazing the plane: the edge test's point
-    float3 p = l0 >= l1 && l0 >= l2 ? v0 : (l1 >= l2 ? v1 : v2);  // on the longest edge
-    return clamp(dot(n, p - r.o) / den, zlo, zhi);
+    if (fabs(den) <= 1.1920929e-7f) return INF_F;
+    if (fabs(den) < 1e-3f) return clamp(t_edge, zlo, zhi);  // grazing the plane: the edge test's point
+    return clamp(dot(n, v0 - r.o) / den, zlo, zhi);
 }
 
 // Returns t (distance along the unit direction), or INF_F for a miss. Edges and vertices
 // count as inside, so a ray through a shared edge hits one of the two triangles (a tie).
-INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
+// n: the triangle's unit normal (triangle_plane_t).
+INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2, float3 n) {
     float3 a = wray_vertex(r, v0);
     float3 b = wray_vertex(r, v1);
     float3 c = wray_vertex(r, v2);
@@ -153,7 +140,7 @@ INLINE float ray_triangle_wt(WRay r, float3 v0, float3 v1, float3 v2) {
     float det = u + v + w;
     if (det == 0.0f) return INF_F;  // ray in the triangle's plane, or a degenerate triangle
     float t_edge = (u * a.z + v * b.z + w * c.z) / det;  // Woop's depth: the edge test's point
-    return triangle_plane_t(r, v0, v1, v2, min(a.z, min(b.z, c.z)), max(a.z, max(b.z, c.z)), t_edge);
+    return triangle_plane_t(r, v0, n, min(a.z, min(b.z, c.z)), max(a.z, max(b.z, c.z)), t_edge);
 }
 
 // --- Akenine-Moeller triangle/box overlap (2001), separating axis theorem -------------------

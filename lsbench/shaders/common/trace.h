@@ -347,11 +347,18 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft, Candidates cell) {
 // plain lists (voxel_tris), and the candidate loop loads the record at the list position (`bvh`,
 // whose leaves are ranges of one list: a leaf's records are then adjacent, and their load does not
 // wait for the id's); the id still comes from voxel_tris.
-INLINE Triangle load_candidate(CTX_PARAM uint tri) {
-    Triangle t;
-    t.a = V(tri_verts)[3u * tri].xyz;
-    t.b = V(tri_verts)[3u * tri + 1u].xyz;
-    t.c = V(tri_verts)[3u * tri + 2u].xyz;
+// The records' w components hold the triangle's unit normal (geometry.h: triangle_plane_t).
+STRUCT(TriRecord) { float3 a; float3 b; float3 c; float3 n; };
+
+INLINE TriRecord load_candidate(CTX_PARAM uint tri) {
+    float4 a = V(tri_verts)[3u * tri];
+    float4 b = V(tri_verts)[3u * tri + 1u];
+    float4 c = V(tri_verts)[3u * tri + 2u];
+    TriRecord t;
+    t.a = a.xyz;
+    t.b = b.xyz;
+    t.c = c.xyz;
+    t.n = make_float3(a.w, b.w, c.w);
     return t;
 }
 
@@ -386,11 +393,11 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
         uint tri = V(voxel_tris)[i];
 #endif
 #ifdef LIST_ORDER_RECORDS
-        Triangle T = load_candidate(CTX_ARG i);
+        TriRecord T = load_candidate(CTX_ARG i);
 #else
-        Triangle T = load_candidate(CTX_ARG tri);
+        TriRecord T = load_candidate(CTX_ARG tri);
 #endif
-        float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c);
+        float t = ray_triangle_wt(tr.wr, T.a, T.b, T.c, T.n);
         tr.best = closer(tr.best, t, I32(tri), tr.tmin);
 #ifdef QUERY_ANY
         if (tr.best.prim >= 0) { ++i; break; }
