@@ -68,8 +68,9 @@ def test_classifier_accepts_a_grazing_hit_at_its_distance_but_not_a_wrong_one():
     """A ray at 3 degrees to a triangle, 5e-7 inside its long edge (an ambiguous triangle), and a
     wall behind it; the reference names the wall (as Embree did in such a case, in a soup of
     random triangles). The first triangle reported 1e-5 relative too far (rel_tol: 1e-4) lies
-    past its edge by more than pos_eps, yet it is the triangle the ray meets, at a distance within tolerance, as a
-    robust hit would be judged: both answers are acceptable. A distance off by 1e-2 is not."""
+    past its edge by more than pos_eps, yet it is the triangle the ray meets, at a distance
+    within tolerance, as a robust hit would be judged: both answers are acceptable. A distance
+    off by 1e-2 is not."""
     v = np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, -2, -2], [2, 2, -2], [2, 0, 2]])
     scene = Scene("graze", v, np.uint32([[0, 1, 2], [3, 4, 5]]), "test")
     d = np.array([1.0, 0.3, -0.05]) / np.linalg.norm([1.0, 0.3, -0.05])

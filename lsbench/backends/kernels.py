@@ -81,8 +81,9 @@ def numbered(source: str) -> str:
 
 # --- Specs shared by every structure -------------------------------------------------------
 SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
-# Traversal kernels also read tri_verts: each triangle's three vertices as float4 (w: its unit normal) at
-# 3 * tri .. 3 * tri + 2, gathered through the faces once at upload (backends.triangle_records). A
+# Traversal kernels also read tri_verts: each triangle's three vertices as float4 (w: its unit
+# normal) at 3 * tri .. 3 * tri + 2, gathered through the faces once at upload
+# (backends.triangle_records). A
 # candidate test then loads one 48-byte record instead of 3 face indices and 3 scattered vertices
 # (docs/profiles.md, primary rays per CPU-second: +5-7 % on PoCL, +35-42 % on llvmpipe; incoherent rays:
 # no difference resolved); builds keep vertices/faces. The traversals bind tri_verts only
