@@ -160,6 +160,10 @@ def test_launch_order_is_pixel_tiles():
     edge = launch_order(image(20, 13))  # edge tiles are cut to the image
     assert sorted(edge.tolist()) == list(range(20 * 13)) and edge[64] == 8
     assert launch_order(RaySet("given", np.zeros((64, 3), np.float32), np.ones((64, 3), np.float32))) is None
+    # computed once per image size and shared by every trace: no caller may change it
+    assert launch_order(image(32, 24)) is order and launch_order(image(24, 32)) is not order
+    with pytest.raises(ValueError):
+        order[0] = 1
 
 
 @pytest.mark.parametrize("structure,resolution,ls_n", [("grid", (12, 16, 9), 0), ("esvo-ls", (16,) * 3, 2)])
