@@ -207,6 +207,23 @@ def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_k
     built.release()
 
 
+@pytest.mark.parametrize("pair_bits", [True, False])
+def test_dense_cells_give_the_reference_lists(device, monkeypatch, pair_bits):
+    """Cells of more than 64 candidates: on PoCL the count and the fill take each shaft's
+    candidates in runs of 32 (the masks' cull first: linespace.h ls_uncull_bits), so a cell spans
+    several runs, and its pair bits start anywhere in a word. The lists are the numpy reference's,
+    from the count's pair bits and from a fill that tests the pairs again."""
+    monkeypatch.setenv("LSBENCH_LS_TEST", "edges")
+    if not pair_bits:
+        monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
+    scene, res = random_scene(n_tris=200, size=0.3, seed=9), (2, 2, 1)
+    assert max(len(ids) for ids in voxel_lists(device, scene, res).values()) > 64
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=2))
+    assert built.stats["ls_pair_bits"] == pair_bits
+    assert_reference_lists(device, scene, res, 2, "edges", built)
+    built.release()
+
+
 def grazing_planes_scene(count=24, seed=5) -> Scene:
     """Large triangles (edges far outside the 2 x 2 x 2 grid) in planes through points within
     0.002 of the grid's corners, edges and faces, at random slants: their edges never meet a

@@ -94,7 +94,8 @@ UINT32_MAX = 2**32 - 1
 # PoCL's global memory (7-14 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
 # llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/scene.h); a
-# count or fill work item runs one loop iteration per candidate of its chunk plus the exact test's
+# count or fill work item runs one loop iteration per candidate of its chunk (the runs of
+# LS_CULL_RUNS are only where work items run one after the other: no GL driver) plus the exact test's
 # inner loops where the compiler keeps them (SAT: at most 12; clipping: 8 planes x 2 loops of at
 # most LS_MAX_POLY = 16 vertices; edges: the hull's 8 corners and at most 28 edge slots) and the
 # cell lookup (< 32), so chunks of 4095 (SAT), 1236 (edges) or 240 (clipping) candidates stay
@@ -367,7 +368,11 @@ def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec,
     the fill: from the bits where those of all cells fit, else testing the pairs again."""
     count = _with_test(device, LS_COUNT)
     count = dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
-    return count, (LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL))
+    fill = LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL)
+    if device.serial_work_items:  # the masks' cull as vector code of its own (linespace.h: ls_uncull_bits)
+        count = count.with_defines(LS_CULL_RUNS=1)
+        fill = fill if fill_from_bits else fill.with_defines(LS_CULL_RUNS=1)
+    return count, fill
 
 
 def prepare(device: Device) -> None:

@@ -569,15 +569,38 @@ INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p
     return r.x <= r.y ? 1 : 0;
 }
 
-// Does the triangle meet the shaft? Steps 1-3 above for a candidate of the cell, whose masks of the
-// shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks patch-major)
-// and whose cell-local vertices are ls_local_tris[tri_row ..].
+// Does the triangle meet the shaft? Steps 1-3 above, for the candidates of a cell, whose masks of
+// the shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks
+// patch-major) and whose cell-local vertices are ls_local_tris[tri_row ..].
+// Step 1 for the candidates [k0, k0 + span) of a shaft's run (span <= 32; their masks of the
+// shaft's two patches are ls_masks[ra + k] and ls_masks[rb + k]): those the masks do not cull, as
+// bit k - k0. LS_CULL_RUNS (linespace.py: where work items run one after the other, PoCL): a loop
+// of loads and bit operations alone, apart from the tests of the survivors, which the compiler
+// makes vector code (8 candidates per instruction), where one loop over the pairs paid a branch
+// per pair for the two thirds of them that the masks cull (Sponza grid-ls 64³ N=3: ls_count
+// 5.87-6.04 s -> 4.92-5.30 s). Where the lanes are shafts (llvmpipe, GPUs) that second loop cost
+// more than it saved (grid-ls glsl 128³ N=2: 7.6-8.0 s -> 9.1-9.6 s): there the pair loop takes
+// every candidate and the pair test culls (ls_pair_meets).
+#ifdef LS_CULL_RUNS
+INLINE uint ls_uncull_bits(CTX_PARAM uint ra, uint rb, uint k0, uint span) {
+    uint live = 0u;
+    for (uint k = 0u; k < span; ++k) {
+        uint common_bits = V(ls_masks)[ra + k0 + k] & V(ls_masks)[rb + k0 + k] & LS_CULL_BITS;
+        live |= (common_bits == 0u ? 1u : 0u) << k;
+    }
+    return live;
+}
+#endif
+
+// Steps 2 and 3 (and 1 without LS_CULL_RUNS) for a pair that ls_uncull_bits left.
 INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
                          float4 p5, float4 p6, float4 p7) {
     uint ma = V(ls_masks)[ra];
     uint mb = V(ls_masks)[rb];
+#ifndef LS_CULL_RUNS
     if ((ma & mb & LS_CULL_BITS) != 0u) return 0;  // 1. cull
+#endif
     if (((ma | mb) & LS_MEETS_PATCH) != 0u || ((ma & LS_ABOVE_PLANE) != 0u && (mb & LS_BELOW_PLANE) != 0u) ||
         ((ma & LS_BELOW_PLANE) != 0u && (mb & LS_ABOVE_PLANE) != 0u)) return 1;  // 2. certain from the masks
     float3 a = V(ls_local_tris)[tri_row].xyz;  // cell-local, as ls_masks_kernel computed them
@@ -731,6 +754,41 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         uint pend = 0u;
 #endif
+#ifdef LS_CULL_RUNS
+        // Runs of 32 candidates: the masks' survivors first (ls_uncull_bits), then the tests of
+        // those alone, in list order (the fill's lists and the pair bits as one pass over all).
+        for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {
+            uint live = ls_uncull_bits(CTX_ARG ra, rb, k0, min(end_i - first_i - k0, 32u));
+#ifdef LS_PAIR_BITS
+            uint met = 0u;
+#endif
+            while (live != 0u) {
+                uint j = LOWEST_BIT(live);
+                live &= live - 1u;
+                uint k = k0 + j;
+                if (ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
+                                  p0, p1, p2, p3, p4, p5, p6, p7) != 0) {
+#ifdef KERNEL_ls_fill
+                    pend = ls_put_candidate(CTX_ARG first, count, first_i + k - begin, pend);
+#endif
+                    count += 1u;
+#ifdef LS_PAIR_BITS
+                    met |= 1u << j;
+#endif
+                }
+            }
+#ifdef LS_PAIR_BITS
+            // the run's bits start at bit + k0: one or two words, which neighbouring items share
+            uint at = bit + k0;
+            if (met != 0u) ATOMIC_OR(V(ls_pair_bits)[at >> 5u], met << (at & 31u));
+            if ((at & 31u) != 0u && (met >> (32u - (at & 31u))) != 0u) {
+                ATOMIC_OR(V(ls_pair_bits)[(at >> 5u) + 1u], met >> (32u - (at & 31u)));
+            }
+#endif
+        }
+#else
+        // One loop over the pairs, the cull in the pair test: where the lanes are shafts, the
+        // runs above (a second loop level) made the count 8-15 % slower (llvmpipe).
 #ifdef LS_PAIR_BITS
         uint word = 0u;
 #endif
@@ -753,6 +811,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
             bit += 1u;
 #endif
         }
+#endif
 #endif
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);

@@ -45,6 +45,7 @@
 #define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
 #define ATOMIC_CAS(lvalue, expected, v) atomicCompSwap(lvalue, expected, v)
 #define POPCOUNT(x) U32(bitCount(x))  // set bits of a uint, as a uint
+#define LOWEST_BIT(x) uint(findLSB(x))  // the index of the lowest set bit of a non-zero uint
 #define LANG_GLSL 1
 #define PREFETCH(p)  // GLSL has no prefetch (opencl/prelude.cl: only CPUs need it)
 // Device clock for the profiling counters (COUNT_WORK builds; Delgado Kraemer 2019, 6.3, Fig. 20b):
