@@ -107,6 +107,8 @@ LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 
 CELLS_PER_ITEM = 16
 # Shafts counted per atomic in ls_set_len where work items run one after the other (linespace.h).
 LS_NONEMPTY_BLOCK = 32
+# ... and where they run in SIMD lanes: shafts per work item, taken at a stride of the item count.
+LS_NONEMPTY_STRIDE = 32
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -711,8 +713,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def bound(spec: KernelSpec) -> KernelSpec:
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
-        set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u") if device.serial_work_items else LS_SET_LEN
-        device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
+        if device.serial_work_items:
+            set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
+            device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
+        else:
+            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (Uniform("ls_shaft_total", "uint"),))
+            set_len = set_len.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
+            device.dispatch(bound(set_len), -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below
