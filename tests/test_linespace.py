@@ -261,30 +261,33 @@ def test_planes_grazing_the_shafts_give_the_reference_lists(device, monkeypatch,
     built.release()
 
 
-def test_cell_groups_cover_the_batch_inside_one_chunk():
-    """BuildPlan.cell_groups: consecutive groups that cover the batch, at most CELLS_PER_ITEM cells
-    each, every group's candidates inside one chunk, a block halved only where it does not fit; and
-    no groups where a cell needs more than one chunk."""
+@pytest.mark.parametrize("per_item", [16, 256])
+def test_cell_groups_cover_the_batch_inside_one_chunk(per_item):
+    """BuildPlan.cell_groups: consecutive groups that cover the batch, at most `per_item` cells
+    each, every group's candidates plus one per cell inside one chunk, a block halved only where it
+    does not fit; and no groups where a cell needs more than one chunk."""
     rng = np.random.default_rng(3)
-    lengths = rng.integers(0, 40, 1000)
-    lengths[rng.integers(0, 1000, 30)] = 100  # dense cells: their blocks split
+    chunk = 100 if per_item == 16 else 600  # sparse cells for the large blocks: some fit whole
+    lengths = rng.integers(0, 40, 1000) * (rng.random(1000) < (0.9 if per_item == 16 else 0.05))
+    lengths[rng.integers(0, 1000, 30 if per_item == 16 else 3)] = chunk - 1  # dense cells (a chunk with their own loop)
     ends = np.cumsum(lengths)
     ranges = np.stack([ends - lengths, ends], axis=1)
-    plan = linespace.plan_build(ranges, 15, 24, chunk=100)
+    plan = linespace.plan_build(ranges, 15, 24, chunk=chunk)
+    load = lambda a, b: plan.ref_bases[b] - plan.ref_bases[a] + (b - a)  # candidates, plus one per cell
     for c0, c1 in ((0, 1000), (13, 700), (999, 1000)):
-        groups = plan.cell_groups(c0, c1, 15).astype(np.int64)
+        groups = plan.cell_groups(c0, c1, 15, per_item).astype(np.int64)
         assert groups[0] == c0 and groups[-1] == c1 and np.all(np.diff(groups) >= 1)
         sizes = np.diff(groups)
-        sums = plan.ref_bases[groups[1:]] - plan.ref_bases[groups[:-1]]
-        assert sizes.max() <= linespace.CELLS_PER_ITEM and sums.max() <= 100
+        assert sizes.max() <= per_item and load(groups[:-1], groups[1:]).max() <= chunk
         for g0, size in zip(groups[:-2], sizes[:-1]):  # a smaller group: its aligned parent block did not fit
             size = int(size)  # (the last group may be a block cut short by c1)
-            if size < linespace.CELLS_PER_ITEM:
+            if size < per_item:
                 p0 = c0 + (g0 - c0) // (2 * size) * (2 * size)
-                assert plan.ref_bases[min(p0 + 2 * size, c1)] - plan.ref_bases[p0] > 100
-    assert (plan.ref_bases[np.minimum(np.arange(0, 1000, 16) + 16, 1000)]
-            - plan.ref_bases[np.arange(0, 1000, 16)]).max() > 100  # some block did not fit
-    assert linespace.plan_build(ranges, 15, 24, chunk=99).cell_groups(0, 1000, 15) is None
+                assert load(p0, min(p0 + 2 * size, c1)) > chunk
+        assert c1 - c0 < per_item or sizes.max() > per_item // 4  # large groups form
+    starts = np.arange(0, 1000, per_item)
+    assert load(starts, np.minimum(starts + per_item, 1000)).max() > chunk  # some block did not fit
+    assert linespace.plan_build(ranges, 15, 24, chunk=chunk - 2).cell_groups(0, 1000, 15, per_item) is None
 
 
 @pytest.mark.parametrize("split", ["chunks", "batches", "groups"])
@@ -305,7 +308,7 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
         monkeypatch.setattr(linespace, "LS_MASK_BYTES", 4 * 24 * 30)  # 30 references of 6 N^2 masks
         monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
     else:
-        monkeypatch.setattr(linespace, "CELLS_PER_ITEM", 4)
+        monkeypatch.setitem(linespace.CELLS_PER_ITEM, device.backend, 4)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     st = built.stats
     if split == "chunks":

@@ -104,7 +104,13 @@ LS_LOOP_BUDGET = {"glsl": 65535}
 LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 8 + 28 + 16}
 # Most cells one count or fill work item walks for its shaft where every cell is one chunk
 # (BuildPlan.cell_groups; linespace.h: ls_shaft_kernel): the shaft's set-up paid once for them.
-CELLS_PER_ITEM = 16
+# On llvmpipe an invocation of the count's large shader costs a core ~150 ns before any pair
+# (docs/linespace-build.md), so its items take more cells: Sponza grid-ls glsl 128³ N=2, ls_count
+# 7.7-8.2 s at 16, 7.3-7.8 at 64, 6.0-6.3 at 256, 5.9 at 512, 6.4-6.5 at 1024-4096 (the groups must
+# also fit one chunk). On PoCL 64 was no faster than 16 (5.67 against 5.30 s, 64³ N=3). GPUs are
+# not measured; their GL drivers get llvmpipe's value, as they get its loop budget.
+CELLS_PER_ITEM = {"glsl": 256}
+CELLS_PER_ITEM_DEFAULT = 16
 # Shafts counted per atomic in ls_set_len where work items run one after the other (linespace.h).
 LS_NONEMPTY_BLOCK = 32
 # ... and where they run in SIMD lanes: shafts per work item, taken at a stride of the item count.
@@ -440,11 +446,12 @@ class BuildPlan:
         instead of a search over the cells (linespace.h: ls_shaft_kernel)."""
         return int(self.item_bases[c1] - self.item_bases[c0]) == per_cell * (c1 - c0)
 
-    def cell_groups(self, c0: int, c1: int, per_cell: int) -> np.ndarray | None:
+    def cell_groups(self, c0: int, c1: int, per_cell: int, cells_per_item: int) -> np.ndarray | None:
         """Where every cell of [c0, c1) is one chunk, the groups of consecutive cells that one
         count or fill work item walks for its shaft (linespace.h: ls_shaft_kernel, ls_cell_groups):
-        each group's first cell, then c1. A group is an aligned block of CELLS_PER_ITEM cells
-        whose candidates together fit one chunk, so that a work item's loops stay inside the
+        each group's first cell, then c1. A group is an aligned block of `cells_per_item` cells
+        (a power of two) whose candidates, plus one for each cell (its own loop iterations, far
+        fewer than a candidate's), fit one chunk, so that a work item's loops stay inside the
         driver's budget as one chunk's do; a block that does not fit is halved, down to single
         cells. None where a cell has more than one chunk (a work item is then one chunk)."""
         if not self.one_chunk(c0, c1, per_cell):
@@ -452,11 +459,12 @@ class BuildPlan:
         cut = np.zeros(c1 - c0 + 1, bool)
         cut[[0, -1]] = True
         open_cells = np.ones(c1 - c0, bool)  # not yet in a group
-        size = CELLS_PER_ITEM
+        size = int(cells_per_item)
         while True:
             starts = np.arange(c0, c1, size)
             ends = np.minimum(starts + size, c1)
-            fits = open_cells[starts - c0] & ((self.ref_bases[ends] - self.ref_bases[starts] <= self.chunk) | (size == 1))
+            load = self.ref_bases[ends] - self.ref_bases[starts] + (ends - starts)
+            fits = open_cells[starts - c0] & ((load <= self.chunk) | (size == 1))
             cut[starts[fits] - c0] = True
             cut[ends[fits] - c0] = True
             open_cells &= ~np.repeat(fits, size)[: c1 - c0]
@@ -647,7 +655,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                         ls_bits_base=bits_base, ls_grouped=0)
 
         no_groups = temp("ls_cell_groups", 4)
-        cell_groups = {(c0, c1): plan.cell_groups(c0, c1, per_cell) for c0, c1 in plan.batches}  # count and fill
+        cells_per_item = CELLS_PER_ITEM.get(device.backend, CELLS_PER_ITEM_DEFAULT)
+        cell_groups = {(c0, c1): plan.cell_groups(c0, c1, per_cell, cells_per_item)  # count and fill
+                       for c0, c1 in plan.batches}
 
         def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict) -> None:
             """One count or fill dispatch over the batch [c0, c1): a work item per shaft of each

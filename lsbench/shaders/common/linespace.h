@@ -1041,8 +1041,11 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
 #endif
 
 #ifdef KERNEL_ls_min
+// The slot's value only falls, so a shaft that reads a value no larger than its own changes
+// nothing and takes no atomic: most do, their slot's claimer being the smallest member already.
 INLINE void ls_min_kernel(CTX_PARAM uint b) {
-    ATOMIC_MIN(V(ls_set_table)[V(ls_set_slot)[b]], b + 1u);
+    uint at = V(ls_set_slot)[b];
+    if (b + 1u < V(ls_set_table)[at]) ATOMIC_MIN(V(ls_set_table)[at], b + 1u);
 }
 #endif
 
