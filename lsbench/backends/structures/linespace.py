@@ -727,9 +727,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
             device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
         else:
-            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (Uniform("ls_shaft_total", "uint"),))
+            total = Uniform("ls_shaft_total", "uint")
+            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (total,))
             set_len = set_len.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
-            device.dispatch(bound(set_len), -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
+            device.dispatch(bound(set_len), -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs,
+                            dict(u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below

@@ -644,8 +644,9 @@ INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
 // gid % shafts: the shaft) and walks them in turn, so that the shaft's set-up (its 10 plane slots,
 // the division) is paid once per group; neighbouring lanes take neighbouring shafts of the same
 // cells, so their cell loops run in step. The host makes the groups (linespace.py:
-// BuildPlan.cell_groups): at most 16 cells whose candidates together fit one chunk. Otherwise
-// (ls_grouped = 0) a work item is one chunk of one cell, found by a search over the cells.
+// BuildPlan.cell_groups): at most CELLS_PER_ITEM cells (16; 256 on GL) whose candidates fit one
+// chunk. Otherwise (ls_grouped = 0) a work item is one chunk of one cell, found by a search over
+// the cells.
 #ifdef KERNEL_ls_fill
 // The fill's entry `count` of an item whose part of its set starts at entry `first`: the
 // `position` of the candidate in its cell's list (cell-local ids, layout above). With LS_IDS16 two
