@@ -727,8 +727,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
             device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
         else:
-            total = Uniform("ls_shaft_total", "uint")
-            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (total,))
+            shaft_total = Uniform("ls_shaft_total", "uint")
+            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (shaft_total,))
             set_len = set_len.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
             device.dispatch(bound(set_len), -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs,
                             dict(u, ls_shaft_total=n_shafts))
