@@ -789,7 +789,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         }
 #else
         // One loop over the pairs, the cull in the pair test: where the lanes are shafts, the
-        // runs above (a second loop level) made the count 8-15 % slower (llvmpipe).
+        // runs above (a second loop level) made the count 5-20 % slower (llvmpipe).
 #ifdef LS_PAIR_BITS
         uint word = 0u;
 #endif
