@@ -383,11 +383,25 @@ def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec,
     return count, fill
 
 
+def _set_len_spec(device: Device) -> KernelSpec:
+    """ls_set_len as this device runs it: the non-empty shafts counted LS_NONEMPTY_BLOCK per atomic
+    (work items one after the other) or at a stride of LS_NONEMPTY_STRIDE (SIMD lanes)."""
+    if device.serial_work_items:
+        return LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
+    strided = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (Uniform("ls_shaft_total", "uint"),))
+    return strided.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
+
+
 def prepare(device: Device) -> None:
+    """Compile the build's kernels in the variants it dispatches (arrays in one buffer each), so
+    that no compile falls inside the timed build."""
     for spec in BUILD_SPECS:
         device.compile(_with_test(device, spec))
-    for spec in _count_fill_specs(device, True):
-        device.compile(spec)
+    device.compile(_set_len_spec(device))
+    for fill_from_bits in (True, False):
+        count, fill = _count_fill_specs(device, fill_from_bits)
+        for spec in (count, fill, fill.with_defines(LS_IDS16=1)):
+            device.compile(spec)
 
 
 def check_min_candidates(k: int) -> int:
@@ -723,15 +737,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def bound(spec: KernelSpec) -> KernelSpec:
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
+        set_len = bound(_set_len_spec(device))
         if device.serial_work_items:
-            set_len = LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
-            device.dispatch(bound(set_len), n_shafts, sets_bufs, u)
+            device.dispatch(set_len, n_shafts, sets_bufs, u)
         else:
-            shaft_total = Uniform("ls_shaft_total", "uint")
-            set_len = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (shaft_total,))
-            set_len = set_len.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
-            device.dispatch(bound(set_len), -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs,
-                            dict(u, ls_shaft_total=n_shafts))
+            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below
