@@ -210,7 +210,7 @@ def test_shaft_candidates_are_the_numpy_reference(device, monkeypatch, n, test_k
 @pytest.mark.parametrize("pair_bits", [True, False])
 def test_dense_cells_give_the_reference_lists(device, monkeypatch, pair_bits):
     """Cells of more than 64 candidates: on PoCL the count and the fill take each shaft's
-    candidates in runs of 32 (the masks' cull first: linespace.h ls_uncull_bits), so a cell spans
+    candidates in runs of 32 (each step a vector loop: linespace.h ls_run_meets), so a cell spans
     several runs, and its pair bits start anywhere in a word. The lists are the numpy reference's,
     from the count's pair bits and from a fill that tests the pairs again."""
     monkeypatch.setenv("LSBENCH_LS_TEST", "edges")

@@ -115,6 +115,9 @@ CELLS_PER_ITEM_DEFAULT = 16
 LS_NONEMPTY_BLOCK = 32
 # ... and where they run in SIMD lanes: shafts per work item, taken at a stride of the item count.
 LS_NONEMPTY_STRIDE = 32
+# Pairs per vector block of the count's cull and tests where work items run one after the other
+# (linespace.h: LS_RUN_LANES, ls_run_meets): PoCL's 8-wide vectors.
+LS_RUN_LANES = 8
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
@@ -377,10 +380,17 @@ def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec,
     count = _with_test(device, LS_COUNT)
     count = dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
     fill = LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL)
-    if device.serial_work_items:  # the masks' cull as vector code of its own (linespace.h: ls_uncull_bits)
-        count = count.with_defines(LS_CULL_RUNS=1)
-        fill = fill if fill_from_bits else fill.with_defines(LS_CULL_RUNS=1)
+    if device.serial_work_items:  # each step of the pair test a vector loop of its own (linespace.h: ls_run_meets)
+        count, fill = _cull_runs(count), _cull_runs(fill)  # (the fill from pair bits tests nothing)
     return count, fill
+
+
+def _cull_runs(spec: KernelSpec) -> KernelSpec:
+    """`spec` with LS_CULL_RUNS, the cell-local triangles read as plain floats (linespace.h LS_TRI_ARGS)."""
+    if not any(b.name == "ls_local_tris" for b in spec.buffers):
+        return spec
+    buffers = tuple(Buf(b.name, "float", b.access) if b.name == "ls_local_tris" else b for b in spec.buffers)
+    return dataclasses.replace(spec, buffers=buffers).with_defines(LS_CULL_RUNS=1, LS_RUN_LANES=f"{LS_RUN_LANES}u")
 
 
 def _set_len_spec(device: Device) -> KernelSpec:
@@ -639,7 +649,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
         temps.extend((item_bases, ref_bases))
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
-        masks = temp("ls_masks", 4 * most_refs * patches, zero=False)
+        # + LS_RUN_LANES words: the count's cull reads whole vector blocks past a run (linespace.h ls_run_meets)
+        masks = temp("ls_masks", 4 * (most_refs * patches + LS_RUN_LANES), zero=False)
         local_tris = temp("ls_local_tris", LOCAL_TRI_BYTES * most_refs, zero=False)
         bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,

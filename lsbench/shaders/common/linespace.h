@@ -357,23 +357,13 @@ LS_CELL_SEARCH(ls_item_cell, ls_item_bases)
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
-// Cheap outcomes first (ls_side): all corners outside one plane -> no; all corners inside every
+// Cheap outcomes first (ls_facet_verdict, below): all corners outside one plane -> no; all corners inside every
 // plane -> yes; otherwise the exact test the build compiles in (linespace.py: exact_test): by
 // default "edges" (LS_EXACT_EDGES: a triangle edge in the pushed volume or a volume edge through
 // the triangle, ls_volume_edge_meets); or clip the triangle against the planes (Sutherland-Hodgman,
 // thesis 3.3.3) and see whether anything is left (LS_CLIP_SH); or the separating-axis test
 // ls_sat_meets. The quick test uses the 8 planes as named values: no variable-indexed
 // arrays, which llvmpipe handles slowly.
-#define LS_OUT(pl, p) (ls_plane_dist(pl, p) - eps > 0.0f)
-// 0: separated by this plane, 1: all corners inside it, 2: straddles it.
-INLINE int ls_side(float4 pl, float3 a, float3 b, float3 c, float eps) {
-    int oa = LS_OUT(pl, a) ? 1 : 0;
-    int ob = LS_OUT(pl, b) ? 1 : 0;
-    int oc = LS_OUT(pl, c) ? 1 : 0;
-    int outs = oa + ob + oc;
-    return outs == 3 ? 0 : (outs == 0 ? 1 : 2);
-}
-
 INLINE int ls_clip_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3 c, float eps) {
     float3 poly[LS_MAX_POLY];
     float3 next[LS_MAX_POLY];
@@ -463,7 +453,7 @@ INLINE int ls_in_triangle(float3 nrm, float3 a, float3 b, float3 c, float3 x) {
 }
 
 // The second half of the "edges" exact test, after no triangle edge met the pushed volume P
-// (ls_edge_in_shaft with eps): a triangle meets a convex polytope iff one of its edges meets
+// (ls_segment_in_shaft with eps): a triangle meets a convex polytope iff one of its edges meets
 // the polytope or one of the polytope's edges meets the triangle. The same predicate as clipping
 // against the pushed planes (ls_clip_meets), without its variable-indexed polygon arrays.
 // With the first half known to be 0, ONE point decides: the cut C of P with the triangle's plane
@@ -535,100 +525,196 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 // 2. certain: the triangle crosses one of the two patches (LS_MEETS_PATCH), or it covers the
 //    cell's cut with its plane and the patches lie on opposite sides (LS_ABOVE/BELOW_PLANE), or
 //    after the facet planes of 3 left it undecided, one of its edges runs inside the shaft
-//    (ls_edge_in_shaft): the triangle meets the shaft volume itself, which every test of 3
+//    (ls_segment_in_shaft): the triangle meets the shaft volume itself, which every test of 3
 //    accepts with the margin ls_eps to spare;
 // 3. otherwise the facet planes (ls_side) and the exact test, as before.
 // 1 and 2 only skip work whose outcome they know: the lists are those of 3 alone (the tests
 // compare them with the numpy reference of lsbench/oracle/reference.py: shaft_candidates, and
 // docs/linespace-build.md with the lists of the build before 1 and 2 on Sponza).
 
-// Part [r.x, r.y] of segment a -> b on the inner side of plane pl pushed out by m (r.x > r.y: none).
-INLINE float2 ls_clip_range(float4 pl, float3 a, float3 b, float2 r, float m) {
-    float da = ls_plane_dist(pl, a) - m;
-    float db = ls_plane_dist(pl, b) - m;
-    if (da > 0.0f && db > 0.0f) return make_float2(1.0f, 0.0f);
-    if (da > 0.0f) r.x = max(r.x, da / (da - db));
-    else if (db > 0.0f) r.y = min(r.y, da / (da - db));
-    return r;
-}
-
-// 1 when some point of the triangle edge a -> b lies in the shaft volume with its facet planes
-// pushed out by m (m = 0: the shaft itself, which the triangle then meets; m = eps: the volume
-// the exact tests accept).
-INLINE int ls_edge_in_shaft(float4 p0, float4 p1, float4 p2, float4 p3, float4 p4, float4 p5, float4 p6,
-                            float4 p7, float3 a, float3 b, float m) {
-    float2 r = make_float2(0.0f, 1.0f);
-    r = ls_clip_range(p0, a, b, r, m);
-    r = ls_clip_range(p1, a, b, r, m);
-    r = ls_clip_range(p2, a, b, r, m);
-    r = ls_clip_range(p3, a, b, r, m);
-    r = ls_clip_range(p4, a, b, r, m);
-    r = ls_clip_range(p5, a, b, r, m);
-    r = ls_clip_range(p6, a, b, r, m);
-    r = ls_clip_range(p7, a, b, r, m);
-    return r.x <= r.y ? 1 : 0;
-}
-
 // Does the triangle meet the shaft? Steps 1-3 above, for the candidates of a cell, whose masks of
 // the shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks
-// patch-major) and whose cell-local vertices are ls_local_tris[tri_row ..].
-// Step 1 for the candidates [k0, k0 + span) of a shaft's run (span <= 32; their masks of the
-// shaft's two patches are ls_masks[ra + k] and ls_masks[rb + k]): those the masks do not cull, as
-// bit k - k0. LS_CULL_RUNS (linespace.py: where work items run one after the other, PoCL): a loop
-// of loads and bit operations alone, apart from the tests of the survivors, which the compiler
-// makes vector code (8 candidates per instruction), where one loop over the pairs paid a branch
-// per pair for the two thirds of them that the masks cull (Sponza grid-ls 64³ N=3: ls_count
-// 5.87-6.04 s -> 4.92-5.30 s). Where the lanes are shafts (llvmpipe, GPUs) that second loop cost
-// more than it saved (grid-ls glsl 128³ N=2: 7.6-8.0 s -> 9.1-9.6 s): there the pair loop takes
-// every candidate and the pair test culls (ls_pair_meets).
-#ifdef LS_CULL_RUNS
-INLINE uint ls_uncull_bits(CTX_PARAM uint ra, uint rb, uint k0, uint span) {
-    uint live = 0u;
-    for (uint k = 0u; k < span; ++k) {
-        uint common_bits = V(ls_masks)[ra + k0 + k] & V(ls_masks)[rb + k0 + k] & LS_CULL_BITS;
-        live |= (common_bits == 0u ? 1u : 0u) << k;
-    }
-    return live;
-}
+// patch-major) and whose cell-local triangles are references tri_ref.. (LS_TRI_ARGS). Two forms of
+// one sequence of steps: ls_pair_meets takes one pair through all of them, where the lanes are
+// shafts (llvmpipe, GPUs: a second loop level there made the count 5-20 % slower); ls_run_meets
+// (LS_CULL_RUNS, where work items run one after the other: PoCL) takes each step over a run of up
+// to 32 candidates in a loop of its own, which the compiler makes vector code, where one loop over
+// the pairs paid a data-dependent branch per pair and step (docs/linespace-build.md).
+#if defined(LS_CULL_RUNS) && !defined(LS_RUN_LANES)
+#define LS_RUN_LANES 8u  // pairs per block of ls_run_meets' vector loops (linespace.py sets it): 8-wide vectors
 #endif
 
-// Steps 2 and 3 (and 1 without LS_CULL_RUNS) for a pair that ls_uncull_bits left.
-INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_row, float eps,
+// Step 2's certain bits: the triangle crosses one of the two patches, or covers the cell's cut
+// with its plane and the patches lie on opposite sides.
+INLINE int ls_masks_certain(uint ma, uint mb) {
+    return (((ma | mb) & LS_MEETS_PATCH) != 0u || ((ma & LS_ABOVE_PLANE) != 0u && (mb & LS_BELOW_PLANE) != 0u) ||
+            ((ma & LS_BELOW_PLANE) != 0u && (mb & LS_ABOVE_PLANE) != 0u)) ? 1 : 0;
+}
+
+// Reference r's cell-local triangle (ls_masks_kernel writes it): ls_local_tris[3 r .. 3 r + 2],
+// (a, 0), (b, 0), (c, 0). Where the pair loops are vector loops (LS_CULL_RUNS, ls_run_meets)
+// linespace.py binds the buffer as plain floats (12 per reference): they and the scalar forms
+// below keep those loops free of vector-typed values, which LLVM's loop vectorizer does not take.
+// Elsewhere the vec4 loads stay (llvmpipe's count took 10 % longer with 9 float loads).
+#ifdef LS_CULL_RUNS
+#define LS_TRI_ARGS(r) V(ls_local_tris)[12u * (r)], V(ls_local_tris)[12u * (r) + 1u], V(ls_local_tris)[12u * (r) + 2u], \
+    V(ls_local_tris)[12u * (r) + 4u], V(ls_local_tris)[12u * (r) + 5u], V(ls_local_tris)[12u * (r) + 6u], \
+    V(ls_local_tris)[12u * (r) + 8u], V(ls_local_tris)[12u * (r) + 9u], V(ls_local_tris)[12u * (r) + 10u]
+#else
+#define LS_TRI_ARGS(r) V(ls_local_tris)[3u * (r)].x, V(ls_local_tris)[3u * (r)].y, V(ls_local_tris)[3u * (r)].z, \
+    V(ls_local_tris)[3u * (r) + 1u].x, V(ls_local_tris)[3u * (r) + 1u].y, V(ls_local_tris)[3u * (r) + 1u].z, \
+    V(ls_local_tris)[3u * (r) + 2u].x, V(ls_local_tris)[3u * (r) + 2u].y, V(ls_local_tris)[3u * (r) + 2u].z
+#endif
+#define LS_TRI_PARAMS float ax, float ay, float az, float bx, float by, float bz, float cx, float cy, float cz
+#define LS_PLANE_PARAMS float4 p0, float4 p1, float4 p2, float4 p3, float4 p4, float4 p5, float4 p6, float4 p7
+
+INLINE float ls_dist3(float4 pl, float x, float y, float z) {
+    return pl.x * x + pl.y * y + pl.z * z + pl.w;
+}
+
+// 0: all corners outside plane pl pushed out by eps, 1: all inside it, 2: straddles it.
+INLINE int ls_side3(float4 pl, LS_TRI_PARAMS, float eps) {
+    int outs = (ls_dist3(pl, ax, ay, az) - eps > 0.0f ? 1 : 0) + (ls_dist3(pl, bx, by, bz) - eps > 0.0f ? 1 : 0) +
+               (ls_dist3(pl, cx, cy, cz) - eps > 0.0f ? 1 : 0);
+    return outs == 3 ? 0 : (outs == 0 ? 1 : 2);
+}
+
+// Step 3's facet planes: 0 separated by one of them, 1 inside all, 2 undecided.
+INLINE int ls_facet_verdict(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
+    int s0 = ls_side3(p0, ax, ay, az, bx, by, bz, cx, cy, cz, eps), s1 = ls_side3(p1, ax, ay, az, bx, by, bz, cx, cy, cz, eps);
+    int s2 = ls_side3(p2, ax, ay, az, bx, by, bz, cx, cy, cz, eps), s3 = ls_side3(p3, ax, ay, az, bx, by, bz, cx, cy, cz, eps);
+    int s4 = ls_side3(p4, ax, ay, az, bx, by, bz, cx, cy, cz, eps), s5 = ls_side3(p5, ax, ay, az, bx, by, bz, cx, cy, cz, eps);
+    int s6 = ls_side3(p6, ax, ay, az, bx, by, bz, cx, cy, cz, eps), s7 = ls_side3(p7, ax, ay, az, bx, by, bz, cx, cy, cz, eps);
+    int lo = min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7)));
+    int hi = max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7)));
+    return lo == 0 ? 0 : (hi == 1 ? 1 : 2);
+}
+
+// 1 when some point of the segment (x0, y0, z0) -> (x1, y1, z1) lies in the shaft volume with its
+// facet planes pushed out by m (m = 0: the shaft itself, which the triangle then meets; m = eps:
+// the volume the exact tests accept). Liang-Barsky; the division only where the segment crosses
+// the plane (SIMD lanes that all stay on one side skip it).
+#define LS_CLIP_STEP(pl) { \
+    float da = ls_dist3(pl, x0, y0, z0) - m, db = ls_dist3(pl, x1, y1, z1) - m; \
+    gone = gone || (da > 0.0f && db > 0.0f); \
+    if ((da > 0.0f) != (db > 0.0f)) { \
+        float t = da / (da - db); \
+        if (da > 0.0f) r0 = max(r0, t); else r1 = min(r1, t); } }
+INLINE int ls_segment_in_shaft(LS_PLANE_PARAMS, float x0, float y0, float z0, float x1, float y1, float z1, float m) {
+    float r0 = 0.0f, r1 = 1.0f;
+    bool gone = false;
+    LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
+    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5) LS_CLIP_STEP(p6) LS_CLIP_STEP(p7)
+    return !gone && r0 <= r1 ? 1 : 0;
+}
+
+// After the facet planes left it undecided: with LS_EXACT_EDGES the exact test's first half (a
+// triangle edge in the volume pushed out by eps), else step 2's last certain case (an edge in the
+// shaft itself). 1 decides "meets"; 0 leaves the pair to the exact test.
+INLINE int ls_edges_in_shaft(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
+#ifdef LS_EXACT_EDGES
+    float m = eps;
+#else
+    float m = 0.0f;
+#endif
+    return (ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, ax, ay, az, bx, by, bz, m) != 0 ||
+            ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, bx, by, bz, cx, cy, cz, m) != 0 ||
+            ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, cx, cy, cz, ax, ay, az, m) != 0) ? 1 : 0;
+}
+
+// The exact test the build compiles in, for a pair the steps before left.
+INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAMS, float eps, float3 ca, float3 cb) {
+    float3 a = make_float3(ax, ay, az), b = make_float3(bx, by, bz), c = make_float3(cx, cy, cz);
+#ifdef LS_EXACT_EDGES
+    return ls_volume_edge_meets(CTX_ARG shaft, a, b, c, ca, cb);  // second half: a volume edge through it
+#elif defined(LS_CLIP_SH)
+    return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // Sutherland-Hodgman
+#else
+    return ls_sat_meets(n, sh, a, b, c, eps);  // separating axes
+#endif
+}
+
+#ifndef LS_CULL_RUNS
+// Steps 1-3 for one pair, the cheapest decision first.
+INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, float eps,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
                          float4 p5, float4 p6, float4 p7) {
     uint ma = V(ls_masks)[ra];
     uint mb = V(ls_masks)[rb];
-#ifndef LS_CULL_RUNS
     if ((ma & mb & LS_CULL_BITS) != 0u) return 0;  // 1. cull
-#endif
-    if (((ma | mb) & LS_MEETS_PATCH) != 0u || ((ma & LS_ABOVE_PLANE) != 0u && (mb & LS_BELOW_PLANE) != 0u) ||
-        ((ma & LS_BELOW_PLANE) != 0u && (mb & LS_ABOVE_PLANE) != 0u)) return 1;  // 2. certain from the masks
-    float3 a = V(ls_local_tris)[tri_row].xyz;  // cell-local, as ls_masks_kernel computed them
-    float3 b = V(ls_local_tris)[tri_row + 1u].xyz;
-    float3 c = V(ls_local_tris)[tri_row + 2u].xyz;
-    int s0 = ls_side(p0, a, b, c, eps), s1 = ls_side(p1, a, b, c, eps);
-    int s2 = ls_side(p2, a, b, c, eps), s3 = ls_side(p3, a, b, c, eps);
-    int s4 = ls_side(p4, a, b, c, eps), s5 = ls_side(p5, a, b, c, eps);
-    int s6 = ls_side(p6, a, b, c, eps), s7 = ls_side(p7, a, b, c, eps);
-    if (min(min(min(s0, s1), min(s2, s3)), min(min(s4, s5), min(s6, s7))) == 0) return 0;  // 3. facet planes
-    if (max(max(max(s0, s1), max(s2, s3)), max(max(s4, s5), max(s6, s7))) == 1) return 1;
-#ifdef LS_EXACT_EDGES
-    float edge_margin = eps;  // 3. exact, by edges, first half: a triangle edge in the pushed volume
-#else
-    float edge_margin = 0.0f;  // 2. certain: a triangle edge inside the shaft itself
-#endif
-    if (ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, a, b, edge_margin) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, b, c, edge_margin) != 0 ||
-        ls_edge_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, c, a, edge_margin) != 0) return 1;
-#ifdef LS_EXACT_EDGES
-    return ls_volume_edge_meets(CTX_ARG shaft, a, b, c, ca, cb);  // second half: a volume edge through it
-#endif
-#ifdef LS_CLIP_SH
-    return ls_clip_meets(CTX_ARG shaft, a, b, c, eps);  // 3. exact: Sutherland-Hodgman
-#else
-    return ls_sat_meets(n, sh, a, b, c, eps);  // 3. exact: separating axes
-#endif
+    if (ls_masks_certain(ma, mb) != 0) return 1;  // 2. certain from the masks
+    int facets = ls_facet_verdict(LS_TRI_ARGS(tri_ref), eps, p0, p1, p2, p3, p4, p5, p6, p7);  // 3. facet planes
+    if (facets != 2) return facets;
+    if (ls_edges_in_shaft(LS_TRI_ARGS(tri_ref), eps, p0, p1, p2, p3, p4, p5, p6, p7) != 0) return 1;
+    return ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref), eps, ca, cb);
 }
+#else
+// Steps 1-3 for a run of candidates [k0, k0 + span) (span <= 32) of a shaft, as bits k - k0 of
+// the candidates that meet it. Where work items run one after the other (PoCL) each step is a
+// loop of its own over the pairs the step before left, packed into `left`: without a branch per
+// pair the compiler makes the cull and the facet planes and triangle edges (gathers of the packed
+// candidates' triangles) vector code, 8 pairs per instruction, where one loop over the pairs paid
+// a data-dependent branch per pair and step (Sponza grid-ls 64³ N=3: ls_count 4.9-5.1 s with the
+// cull alone in a vector loop, 4.0-4.4 s so).
+INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps,
+                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
+                         float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
+    // 1. cull and 2. certain from the masks, as bits of the run: blocks of LS_RUN_LANES (a constant
+    // trip count: vector code even for the runs of sparse cells, shorter than a vector); a block
+    // may read past the run's masks (linespace.py pads ls_masks by LS_RUN_LANES words), whose bits
+    // are dropped.
+    uint live = 0u;
+    uint met = 0u;
+    for (uint k8 = 0u; k8 < span; k8 += LS_RUN_LANES) {
+        for (uint l = 0u; l < LS_RUN_LANES; ++l) {
+            uint k = k8 + l;
+            uint ma = V(ls_masks)[ra + k0 + k];
+            uint mb = V(ls_masks)[rb + k0 + k];
+            uint uncut = (ma & mb & LS_CULL_BITS) == 0u ? 1u : 0u;
+            live |= uncut << k;
+            met |= (uncut & U32(ls_masks_certain(ma, mb))) << k;
+        }
+    }
+    uint in_run = span < 32u ? (1u << span) - 1u : 0xffffffffu;
+    met &= in_run;
+    live &= in_run & ~met;
+    uint left[32 + LS_RUN_LANES];  // the pairs left, packed
+    uint count = 0u;
+    for (; live != 0u; live &= live - 1u) {
+        left[count] = LOWEST_BIT(live);
+        count += 1u;
+    }
+    // The vector loops take blocks of LS_RUN_LANES pairs (a constant trip count, so no scalar
+    // remainder: most runs hold fewer pairs than a vector), the block's tail padded with candidate 0.
+    for (uint l = 0u; l < LS_RUN_LANES; ++l) left[count + l] = 0u;
+    int verdict[32 + LS_RUN_LANES];
+    for (uint q0 = 0u; q0 < count; q0 += LS_RUN_LANES) {  // 3. facet planes
+        for (uint l = 0u; l < LS_RUN_LANES; ++l) {
+            uint r = tri_ref + k0 + left[q0 + l];
+            verdict[q0 + l] = ls_facet_verdict(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7);
+        }
+    }
+    uint undecided = 0u;
+    for (uint q = 0u; q < count; ++q) {
+        met |= (verdict[q] == 1 ? 1u : 0u) << left[q];
+        left[undecided] = left[q];
+        undecided += verdict[q] == 2 ? 1u : 0u;
+    }
+    for (uint l = 0u; l < LS_RUN_LANES; ++l) left[undecided + l] = 0u;
+    for (uint q0 = 0u; q0 < undecided; q0 += LS_RUN_LANES) {  // the triangle's edges
+        for (uint l = 0u; l < LS_RUN_LANES; ++l) {
+            uint r = tri_ref + k0 + left[q0 + l];
+            verdict[q0 + l] = ls_edges_in_shaft(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7);
+        }
+    }
+    for (uint q = 0u; q < undecided; ++q) {  // the exact test, one pair at a time
+        if (verdict[q] != 0 || ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref + k0 + left[q]), eps, ca, cb) != 0) {
+            met |= 1u << left[q];
+        }
+    }
+    return met;
+}
+#endif
 
 #endif  // triangle / shaft test
 
@@ -746,7 +832,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         // and its cell-local vertices
         uint ra = cell_ref * patches + mask_a * (end - begin) + (first_i - begin);
         uint rb = cell_ref * patches + mask_b * (end - begin) + (first_i - begin);
-        uint tri_row = 3u * (cell_ref + (first_i - begin));
+        uint tri_ref = cell_ref + (first_i - begin);
 #ifdef KERNEL_ls_fill
         uint first = LS_ITEM(item);
         if (first == LS_SKIP) continue;
@@ -756,28 +842,19 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint pend = 0u;
 #endif
 #ifdef LS_CULL_RUNS
-        // Runs of 32 candidates: the masks' survivors first (ls_uncull_bits), then the tests of
-        // those alone, in list order (the fill's lists and the pair bits as one pass over all).
+        // Runs of 32 candidates (ls_run_meets), their bits in list order (the fill's lists and the
+        // pair bits as one pass over all).
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {
-            uint live = ls_uncull_bits(CTX_ARG ra, rb, k0, min(end_i - first_i - k0, 32u));
-#ifdef LS_PAIR_BITS
-            uint met = 0u;
-#endif
-            while (live != 0u) {
-                uint j = LOWEST_BIT(live);
-                live &= live - 1u;
-                uint k = k0 + j;
-                if (ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
-                                  p0, p1, p2, p3, p4, p5, p6, p7) != 0) {
+            uint met = ls_run_meets(CTX_ARG ra, rb, tri_ref, k0, min(end_i - first_i - k0, 32u), eps, n, sh, shaft,
+                                    ca, cb, p0, p1, p2, p3, p4, p5, p6, p7);
 #ifdef KERNEL_ls_fill
-                    pend = ls_put_candidate(CTX_ARG first, count, first_i + k - begin, pend);
-#endif
-                    count += 1u;
-#ifdef LS_PAIR_BITS
-                    met |= 1u << j;
-#endif
-                }
+            for (uint put = met; put != 0u; put &= put - 1u) {  // in list order
+                pend = ls_put_candidate(CTX_ARG first, count, first_i + k0 + LOWEST_BIT(put) - begin, pend);
+                count += 1u;
             }
+#else
+            count += POPCOUNT(met);
+#endif
 #ifdef LS_PAIR_BITS
             // the run's bits start at bit + k0: one or two words, which neighbouring items share
             uint at = bit + k0;
@@ -795,7 +872,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
         for (uint i = first_i; i < end_i; ++i) {
             uint k = i - first_i;
-            int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_row + 3u * k, eps, n, sh, shaft, ca, cb,
+            int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_ref + k, eps, n, sh, shaft, ca, cb,
                                       p0, p1, p2, p3, p4, p5, p6, p7);
             if (meets != 0) {
 #ifdef KERNEL_ls_fill
