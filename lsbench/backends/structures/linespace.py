@@ -718,7 +718,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
-            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
                 zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
@@ -778,7 +778,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
-                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1) * 6, cell_bufs, bu)
+                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             shaft_pass(fill, c0, c1, fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:

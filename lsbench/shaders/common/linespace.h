@@ -905,8 +905,10 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 
 #ifdef KERNEL_ls_masks
 // ---- Build: the masks of a batch of cells' triangles ---------------------------------------
-// One work item per (reference, face): dense reference ls_ref_base + gid / 6 (numbered by
-// ls_ref_bases) of its cell, writing the N^2 masks of patches face * N^2 + p (see `row` below).
+// One work item per reference: dense reference ls_ref_base + gid (numbered by ls_ref_bases) of its
+// cell, writing the 6 N^2 masks of patches face * N^2 + p (see `row` below). The triangle's set-up
+// (its cell, vertices, axes and intervals) is paid once for the 6 faces: with an item per (reference,
+// face) it took half of this kernel at N = 2.
 // Cull bits: bit 2k is set when on axis k the patch lies below the triangle by LS_CULL_MARGIN
 // (scaled by the axis length), bit 2k + 1 when above. A shaft's hull projects onto an axis as the
 // hull of its two patches' projections, so the hull lies beyond the triangle on axis k iff both
@@ -966,8 +968,7 @@ INLINE int ls_covers_cell(float3 a, float3 b, float3 c, float3 nrm) {
 INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     uint n = V(ls_n);
     uint n2 = n * n;
-    uint ref = V(ls_ref_base) + gid / 6u;
-    int face = I32(gid % 6u);
+    uint ref = V(ls_ref_base) + gid;
     uint cell = ls_ref_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), ref);
     float3 lo = V(ls_cell_boxes)[2u * cell].xyz;
     float3 hi = V(ls_cell_boxes)[2u * cell + 1u].xyz;
@@ -978,12 +979,10 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float3 a = (t.a - lo) * inv;
     float3 b = (t.b - lo) * inv;
     float3 c = (t.c - lo) * inv;
-    if (face == 0) {  // the pair tests read these, not the scene's indexed vertices (ls_pair_meets)
-        uint tri_row = 3u * (ref - V(ls_ref_base));
-        V(ls_local_tris)[tri_row] = make_float4(a.x, a.y, a.z, 0.0f);
-        V(ls_local_tris)[tri_row + 1u] = make_float4(b.x, b.y, b.z, 0.0f);
-        V(ls_local_tris)[tri_row + 2u] = make_float4(c.x, c.y, c.z, 0.0f);
-    }
+    uint tri_row = 3u * (ref - V(ls_ref_base));  // the pair tests read these, not the scene's indexed vertices
+    V(ls_local_tris)[tri_row] = make_float4(a.x, a.y, a.z, 0.0f);
+    V(ls_local_tris)[tri_row + 1u] = make_float4(b.x, b.y, b.z, 0.0f);
+    V(ls_local_tris)[tri_row + 2u] = make_float4(c.x, c.y, c.z, 0.0f);
     float3 nrm = cross(b - a, c - a);
     float3 ex = make_float3(1.0f, 0.0f, 0.0f), ey = make_float3(0.0f, 1.0f, 0.0f), ez = make_float3(0.0f, 0.0f, 1.0f);
     float3 e0 = b - a, e1 = c - b, e2 = a - c;
@@ -997,42 +996,44 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float2 t6 = ls_tri_interval(x6, a, b, c), t7 = ls_tri_interval(x7, a, b, c), t8 = ls_tri_interval(x8, a, b, c);
     int covers = ls_covers_cell(a, b, c, nrm);
     float nd = dot(nrm, a);
-    // The triangle's cut with the face plane (x0 -> x1 in face coordinates), if it crosses it; a
-    // triangle in the plane gets no LS_MEETS_PATCH.
-    int axis = face / 2;
-    float side = F32(face % 2);
-    float da = comp3(a, axis) - side, db = comp3(b, axis) - side, dc = comp3(c, axis) - side;
-    int ia = da <= 0.0f ? 1 : 0, ib = db <= 0.0f ? 1 : 0, ic = dc <= 0.0f ? 1 : 0;
-    int cuts = (ia == ib && ib == ic) ? 0 : 1;
-    float2 cut0 = ls_face_uv(ia != ib ? ls_plane_cut(a, b, da, db) : ls_plane_cut(b, c, db, dc), axis);
-    float2 cut1 = ls_face_uv((ia != ib && ib != ic) ? ls_plane_cut(b, c, db, dc) : ls_plane_cut(c, a, dc, da), axis);
     float fn = F32(n);
     // Patch-major within the cell (the cell's K references x 6 N^2 patches, mask of reference k and
     // patch q at q * K + k): a shaft's pair loop then reads its two patches' masks as two runs.
     uint refs = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
-    uint row = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * 6u * n2 + U32(face) * n2 * refs + nth;
-    for (uint p = 0u; p < n2; ++p) {
-        float pu = F32(I32(p % n)), pv = F32(I32(p / n));
-        float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
-        float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
-        uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u) | ls_axis_bits(ey, ty, axis, side, u, v, 2u)
-                  | ls_axis_bits(ez, tz, axis, side, u, v, 4u) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u)
-                  | ls_axis_bits(x0, t0, axis, side, u, v, 8u) | ls_axis_bits(x1, t1, axis, side, u, v, 10u)
-                  | ls_axis_bits(x2, t2, axis, side, u, v, 12u) | ls_axis_bits(x3, t3, axis, side, u, v, 14u)
-                  | ls_axis_bits(x4, t4, axis, side, u, v, 16u) | ls_axis_bits(x5, t5, axis, side, u, v, 18u)
-                  | ls_axis_bits(x6, t6, axis, side, u, v, 20u) | ls_axis_bits(x7, t7, axis, side, u, v, 22u)
-                  | ls_axis_bits(x8, t8, axis, side, u, v, 24u);
-        if (cuts != 0) {
-            float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
-            r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
-            if (r.x <= r.y) bits |= LS_MEETS_PATCH;
+    for (int face = 0; face < 6; ++face) {
+        // The triangle's cut with the face plane (x0 -> x1 in face coordinates), if it crosses it; a
+        // triangle in the plane gets no LS_MEETS_PATCH.
+        int axis = face / 2;
+        float side = F32(face % 2);
+        float da = comp3(a, axis) - side, db = comp3(b, axis) - side, dc = comp3(c, axis) - side;
+        int ia = da <= 0.0f ? 1 : 0, ib = db <= 0.0f ? 1 : 0, ic = dc <= 0.0f ? 1 : 0;
+        int cuts = (ia == ib && ib == ic) ? 0 : 1;
+        float2 cut0 = ls_face_uv(ia != ib ? ls_plane_cut(a, b, da, db) : ls_plane_cut(b, c, db, dc), axis);
+        float2 cut1 = ls_face_uv((ia != ib && ib != ic) ? ls_plane_cut(b, c, db, dc) : ls_plane_cut(c, a, dc, da), axis);
+        uint row = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * 6u * n2 + U32(face) * n2 * refs + nth;
+        for (uint p = 0u; p < n2; ++p) {
+            float pu = F32(I32(p % n)), pv = F32(I32(p / n));
+            float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
+            float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
+            uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u) | ls_axis_bits(ey, ty, axis, side, u, v, 2u)
+                      | ls_axis_bits(ez, tz, axis, side, u, v, 4u) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u)
+                      | ls_axis_bits(x0, t0, axis, side, u, v, 8u) | ls_axis_bits(x1, t1, axis, side, u, v, 10u)
+                      | ls_axis_bits(x2, t2, axis, side, u, v, 12u) | ls_axis_bits(x3, t3, axis, side, u, v, 14u)
+                      | ls_axis_bits(x4, t4, axis, side, u, v, 16u) | ls_axis_bits(x5, t5, axis, side, u, v, 18u)
+                      | ls_axis_bits(x6, t6, axis, side, u, v, 20u) | ls_axis_bits(x7, t7, axis, side, u, v, 22u)
+                      | ls_axis_bits(x8, t8, axis, side, u, v, 24u);
+            if (cuts != 0) {
+                float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
+                r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
+                if (r.x <= r.y) bits |= LS_MEETS_PATCH;
+            }
+            if (covers != 0) {
+                float2 h = ls_patch_interval(nrm, axis, side, u, v);
+                if (h.x > nd) bits |= LS_ABOVE_PLANE;
+                if (h.y < nd) bits |= LS_BELOW_PLANE;
+            }
+            V(ls_masks)[row + p * refs] = bits;
         }
-        if (covers != 0) {
-            float2 h = ls_patch_interval(nrm, axis, side, u, v);
-            if (h.x > nd) bits |= LS_ABOVE_PLANE;
-            if (h.y < nd) bits |= LS_BELOW_PLANE;
-        }
-        V(ls_masks)[row + p * refs] = bits;
     }
 }
 #endif
