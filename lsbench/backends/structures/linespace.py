@@ -111,9 +111,8 @@ LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 
 # not measured; their GL drivers get llvmpipe's value, as they get its loop budget.
 CELLS_PER_ITEM = {"glsl": 256}
 CELLS_PER_ITEM_DEFAULT = 16
-# Shafts counted per atomic in ls_set_len where work items run one after the other (linespace.h).
-LS_NONEMPTY_BLOCK = 32
-# ... and where they run in SIMD lanes: shafts per work item, taken at a stride of the item count.
+# Shafts per work item of ls_set_len where work items run in SIMD lanes, taken at a stride of the
+# item count (linespace.h).
 LS_NONEMPTY_STRIDE = 32
 # Pairs per vector block of the count's cull and tests where work items run one after the other
 # (linespace.h: LS_RUN_LANES, ls_run_meets): PoCL's 8-wide vectors.
@@ -394,10 +393,10 @@ def _cull_runs(spec: KernelSpec) -> KernelSpec:
 
 
 def _set_len_spec(device: Device) -> KernelSpec:
-    """ls_set_len as this device runs it: the non-empty shafts counted LS_NONEMPTY_BLOCK per atomic
-    (work items one after the other) or at a stride of LS_NONEMPTY_STRIDE (SIMD lanes)."""
+    """ls_set_len as this device runs it: an item per shaft (work items one after the other) or
+    LS_NONEMPTY_STRIDE shafts at a stride per item (SIMD lanes: one atomic for their non-empty ones)."""
     if device.serial_work_items:
-        return LS_SET_LEN.with_defines(LS_NONEMPTY_BLOCK=f"{LS_NONEMPTY_BLOCK}u")
+        return LS_SET_LEN
     strided = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (Uniform("ls_shaft_total", "uint"),))
     return strided.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
 

@@ -770,6 +770,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint grouped = V(ls_grouped);
     uint cell_first, cell_end, shaft, chunk;
+    uint chunks = 1u;
     if (grouped != 0u) {
         uint group = gid / shafts;
         cell_first = V(ls_cell_groups)[group];
@@ -781,7 +782,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         cell_first = ls_item_cell(CTX_ARG V(ls_cell_first), V(ls_cell_end), item);
         cell_end = cell_first + 1u;
         uint item0 = V(ls_item_bases)[cell_first];
-        uint chunks = (V(ls_item_bases)[cell_first + 1u] - item0) / shafts;
+        chunks = (V(ls_item_bases)[cell_first + 1u] - item0) / shafts;
         shaft = (item - item0) / chunks;
         chunk = (item - item0) % chunks;
     }
@@ -805,6 +806,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p5 = V(ls_planes)[pb + 5u];
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
+#endif
+#ifndef KERNEL_ls_fill
+    uint non_empty = 0u;  // shafts of one-chunk cells with candidates (stats; ls_set_len counts the others)
 #endif
     for (uint cell = cell_first; cell < cell_end; ++cell) {
         uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
@@ -895,8 +899,12 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         ls_put_last(CTX_ARG first, count, pend);
 #else
         LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
+        non_empty += chunks == 1u && count > 0u ? 1u : 0u;
 #endif
     }
+#ifndef KERNEL_ls_fill
+    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
+#endif
 #ifndef KERNEL_ls_fill
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
 #endif
@@ -1181,48 +1189,33 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
 #endif
 
 #ifdef KERNEL_ls_set_len
-// After the item scan: each head writes its set's length (then scanned into the set offsets);
-// the non-empty shafts are counted (stats), LS_NONEMPTY_BLOCK shafts per atomic where work
-// items run one after the other (32) (one counter taking an atomic per shaft was 0.35 of this kernel's
-// 0.4 s on PoCL, Sponza 64³ N=3), one per shaft where they run in SIMD lanes (on llvmpipe the one
-// lane in 32 that loops for its neighbours made the kernel 4.5x slower; linespace.py sets the define
-// from Device.serial_work_items).
-INLINE uint ls_shaft_len(CTX_PARAM uint s) {
-    LsItems it = ls_shaft_items(CTX_ARG s);
-    return LS_ITEM(it.first + it.chunks) - LS_ITEM(it.first);
-}
-
-INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // the shaft's length; a head stores its set's
-    uint len = ls_shaft_len(CTX_ARG s);
+// After the item scan: each head writes its set's length (then scanned into the set offsets). The
+// count kernel counted the non-empty shafts of one-chunk cells (stats); a shaft of several chunks,
+// whose count items each saw one chunk, is counted here. So the shafts that are neither a head nor
+// of such a cell (most) read nothing more than their set word (the count of all of them here took
+// PoCL 0.36 s, Sponza 64³ N=3).
+INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft of several chunks
     uint set = LS_SHAFT_SET(s);
+    LsItems it = ls_shaft_items(CTX_ARG s);
+    if ((set & LS_SET_HEAD) == 0u && it.chunks == 1u) return 0u;
+    uint len = LS_ITEM(it.first + it.chunks) - LS_ITEM(it.first);
     if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), len);
-    return len;
+    return it.chunks > 1u && len > 0u ? 1u : 0u;
 }
 
 #ifdef LS_NONEMPTY_STRIDE
 // Where the lanes run in step (llvmpipe, GPUs): item g takes shafts g, g + M, g + 2M, ... (M items,
-// ls_shaft_total shafts), so every lane loops as often as its neighbours and one atomic counts
-// LS_NONEMPTY_STRIDE shafts (one atomic per shaft was 0.83 of this kernel's 1.43 s on llvmpipe,
-// Sponza grid-ls 128³ N=2).
+// ls_shaft_total shafts), so every lane loops as often as its neighbours and one atomic counts up
+// to LS_NONEMPTY_STRIDE shafts (dense cells of several chunks can be many: one atomic per shaft was
+// 0.83 of this kernel's 1.43 s on llvmpipe when it counted every shaft).
 INLINE void ls_set_len_kernel(CTX_PARAM uint g) {
     uint non_empty = 0u;
-    for (uint s = g; s < V(ls_shaft_total); s += V(n_items)) {
-        if (ls_set_len_of(CTX_ARG s) > 0u) non_empty += 1u;
-    }
+    for (uint s = g; s < V(ls_shaft_total); s += V(n_items)) non_empty += ls_set_len_of(CTX_ARG s);
     if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
 }
 #else
 INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
-    uint len = ls_set_len_of(CTX_ARG s);
-#ifdef LS_NONEMPTY_BLOCK
-    if (s % LS_NONEMPTY_BLOCK != 0u) return;
-    uint non_empty = len > 0u ? 1u : 0u;
-    for (uint k = s + 1u; k < min(s + LS_NONEMPTY_BLOCK, V(n_items)); ++k)
-        if (ls_shaft_len(CTX_ARG k) > 0u) non_empty += 1u;
-    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
-#else
-    if (len > 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
-#endif
+    if (ls_set_len_of(CTX_ARG s) != 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
 }
 #endif
 #endif
