@@ -40,9 +40,11 @@ item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cel
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_hash_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
-(ls_head_counts_kernel, ls_shaft_set_kernel); (5) exclusive scans of the item counts, the sets per
-cell and the heads' set lengths (set offsets), then the offsets array (ls_layout_kernel) and each
-head item's destination (ls_dest_kernel); (6) fill: only the heads' items write their candidates,
+(ls_head_counts_kernel, ls_shaft_set_kernel); (5) each head's set length, the sum of its items'
+counts (ls_set_len_kernel), exclusive scans of the sets per cell and of those lengths (set
+offsets), then the offsets array (ls_layout_kernel) and each head item's destination, its set's
+offset plus its shaft's earlier chunks (ls_dest_kernel; no scan over all items: all shafts' lists
+together, a stat, the count sums in 64 bits); (6) fill: only the heads' items write their candidates,
 in list order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
 measures each step.
 
@@ -222,9 +224,6 @@ LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r"
 LS_DEST = _sets_kernel("ls_dest", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                          "ls_cell_sets:r", "ls_set_lens:r"), LS_UNIFORMS)
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
-LS_CHECK = KernelSpec(
-    "ls_check", LS_HEADERS_NO_SCENE, "ls_check_kernel",
-    (Buf("ls_shaft_offsets", "uint", "r"), Buf("ls_check_flag", "uint", "rw")), LS_UNIFORMS)
 # A split offset array is scanned chunk by chunk; this adds the earlier chunks' total.
 LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
@@ -232,7 +231,7 @@ LS_CARRY = KernelSpec(
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET,
-               LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CHECK, LS_CARRY)
+               LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
@@ -516,13 +515,6 @@ def plan_build(ranges: np.ndarray, per_cell: int, patches: int, chunk: int,
     return BuildPlan(int(chunk), item_bases, ref_bases, tuple(batches))
 
 
-def _renamed(split: SplitArray, bufs: dict[str, DeviceBuffer], base: str, macro: str):
-    """The same buffers under another array name (kernels bind the item offsets and the shaft
-    offsets under their own names)."""
-    other = dataclasses.replace(split, base=base, macro=macro)
-    return other, {new: bufs[old] for old, new in zip(split.names, other.names)}
-
-
 @dataclass(frozen=True)
 class ListSizes:
     """What the lists of a set of Line Spaces hold besides their fixed per-cell part: the distinct
@@ -655,9 +647,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
                          ls_local_tris=local_tris, ls_pair_bits=bits)
-        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items + 1)
-        device.check_memory("ls_item_offsets", 4 * (plan.items + 1))
-        item_bufs = items.alloc(device, zero=True)  # entry `items` stays 0: it becomes the total
+        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items)
+        device.check_memory("ls_item_offsets", 4 * plan.items)
+        item_bufs = items.alloc(device, zero=True)
         temps.extend(item_bufs.values())
         shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", n_shafts)
         shaft_set_bufs = shaft_sets.alloc(device, zero=False)
@@ -725,18 +717,15 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 find_sets(c0, c1, bits_base)
         if all_bits:
             find_sets(0, cells.count, 0)
-        total = _scan_split(device, items, item_bufs, u)
-        # A 32-bit prefix sum wraps silently: whenever the candidates could pass 2^32 - 1, look
-        # for the wrap (a decreasing offset) on the device before trusting `total`. The sets'
-        # lists hold no more than all shafts' lists.
-        if per_cell * cells.references > UINT32_MAX or total >= UINT32_MAX:
-            flag = temp("ls_check_flag", 4)
-            check, check_bufs = _renamed(items, item_bufs, "ls_shaft_offsets", "LS_OFFSET")
-            device.dispatch(check.bind(LS_CHECK), plan.items, dict(check_bufs, ls_check_flag=flag), u)
-            if int(device.read(flag, np.uint32, 1)[0]) or total >= UINT32_MAX:
-                raise DeviceLimitError(
-                    f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
-                    "references: over the 32-bit candidate offsets")
+        # All shafts' lists together, summed in 64 bits by the count (no scan over the items: each
+        # shaft's items are summed where needed, ls_set_len and ls_dest). The sets' lists hold no
+        # more, so below 2^32 - 1 no 32-bit offset of theirs can wrap.
+        low, high = (int(v) for v in device.read(stats_buf, np.uint32, 4)[2:])
+        total = low + (high << 32)
+        if total >= UINT32_MAX:
+            raise DeviceLimitError(
+                f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
+                "references: over the 32-bit candidate offsets")
         n_sets = device.scan_in_place(cell_sets, cells.count + 1)
         set_lens = split_array(device, "ls_set_lens", "LS_SET_LEN", n_sets + 1)
         set_len_bufs = set_lens.alloc(device, zero=True)

@@ -512,9 +512,9 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 // cell into ls_cell_tris). Cell c has k_c chunks of at most ls_chunk candidates (the driver's loop
 // budget, linespace.py: candidate_chunk) and 15 N^4 k_c work items from ls_item_bases[c], shaft-
 // major: item ls_item_bases[c] + shaft * k_c + chunk. A work item walks its chunk in list order,
-// so the scan of the item counts puts each chunk's candidates right after the previous chunk's and
-// the fill writes every shaft's list in cell-list order: no atomics, deterministic, and the same
-// lists as one item per shaft. A dispatch covers the cells [ls_cell_first, ls_cell_end) of one
+// and ls_dest puts each chunk's candidates right after the previous chunk's, so the fill writes
+// every shaft's list in cell-list order: no atomics, deterministic, and the same lists as one item
+// per shaft. A dispatch covers the cells [ls_cell_first, ls_cell_end) of one
 // batch (item ls_item_base + gid); their patch masks (ls_masks_kernel) start at dense reference
 // ls_ref_base.
 //
@@ -809,6 +809,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
 #ifndef KERNEL_ls_fill
     uint non_empty = 0u;  // shafts of one-chunk cells with candidates (stats; ls_set_len counts the others)
+    uint sum_lo = 0u;  // the item's candidates, 64 bits as two words (stats: all shafts' lists)
+    uint sum_hi = 0u;
 #endif
     for (uint cell = cell_first; cell < cell_end; ++cell) {
         uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
@@ -898,12 +900,19 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
-        LS_ITEM_STORE(item, count);  // the count, until the scan makes it the offset
+        LS_ITEM_STORE(item, count);  // the count, until ls_dest makes it the item's place in its set's list
         non_empty += chunks == 1u && count > 0u ? 1u : 0u;
+        sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
+        sum_lo += count;
 #endif
     }
 #ifndef KERNEL_ls_fill
     if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
+    if (sum_lo > 0u) {
+        uint before = ATOMIC_ADD(V(ls_stats)[2], sum_lo);
+        sum_hi += before + sum_lo < before ? 1u : 0u;
+    }
+    if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[3], sum_hi);
 #endif
 #ifndef KERNEL_ls_fill
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
@@ -1189,16 +1198,17 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
 #endif
 
 #ifdef KERNEL_ls_set_len
-// After the item scan: each head writes its set's length (then scanned into the set offsets). The
-// count kernel counted the non-empty shafts of one-chunk cells (stats); a shaft of several chunks,
-// whose count items each saw one chunk, is counted here. So the shafts that are neither a head nor
-// of such a cell (most) read nothing more than their set word (the count of all of them here took
-// PoCL 0.36 s, Sponza 64³ N=3).
+// After the sets: each head writes its set's length, the sum of its items' counts (then scanned
+// into the set offsets). The count kernel counted the non-empty shafts of one-chunk cells
+// (stats); a shaft of several chunks, whose count items each saw one chunk, is counted here. So
+// the shafts that are neither a head nor of such a cell (most) read nothing more than their set
+// word (the count of all of them here took PoCL 0.36 s, Sponza 64³ N=3).
 INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft of several chunks
     uint set = LS_SHAFT_SET(s);
     LsItems it = ls_shaft_items(CTX_ARG s);
     if ((set & LS_SET_HEAD) == 0u && it.chunks == 1u) return 0u;
-    uint len = LS_ITEM(it.first + it.chunks) - LS_ITEM(it.first);
+    uint len = 0u;
+    for (uint k = 0u; k < it.chunks; ++k) len += LS_ITEM(it.first + k);
     if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), len);
     return it.chunks > 1u && len > 0u ? 1u : 0u;
 }
@@ -1221,7 +1231,8 @@ INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
 #endif
 
 #ifdef KERNEL_ls_dest
-// Each item of a head gets where its part of the set's list starts; the other shafts' items LS_SKIP.
+// Each item of a head gets where its part of the set's list starts (the set's offset plus the
+// counts of the shaft's chunks before it: no scan over all items); the other shafts' items LS_SKIP.
 INLINE void ls_dest_kernel(CTX_PARAM uint s) {
     LsItems it = ls_shaft_items(CTX_ARG s);
     uint set = LS_SHAFT_SET(s);
@@ -1229,9 +1240,12 @@ INLINE void ls_dest_kernel(CTX_PARAM uint s) {
         for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, LS_SKIP);
         return;
     }
-    uint begin = LS_SET_LEN(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD));
-    uint off0 = LS_ITEM(it.first);
-    for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, begin + (LS_ITEM(it.first + k) - off0));
+    uint at = LS_SET_LEN(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD));
+    for (uint k = 0u; k < it.chunks; ++k) {
+        uint count = LS_ITEM(it.first + k);
+        LS_ITEM_STORE(it.first + k, at);
+        at += count;
+    }
 }
 #endif
 
@@ -1260,15 +1274,6 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
 #ifdef KERNEL_ls_zero
 INLINE void ls_zero_kernel(CTX_PARAM uint gid) {
     V(ls_zero)[gid] = 0u;
-}
-#endif
-
-#ifdef KERNEL_ls_check
-// ---- 32-bit overflow check of the shaft offsets ---------------------------------------------
-// Each shaft adds fewer than 2^32 candidates, so a total past 2^32 wraps the 32-bit prefix sum
-// and shows as a decrease somewhere; flag it instead of building a truncated list (thesis 6.3).
-INLINE void ls_check_kernel(CTX_PARAM uint gid) {
-    if (LS_OFFSET(gid + 1u) < LS_OFFSET(gid)) ATOMIC_ADD(V(ls_check_flag)[0], 1u);
 }
 #endif
 
