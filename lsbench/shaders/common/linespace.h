@@ -826,9 +826,14 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         if (first == LS_SKIP) continue;
         uint count = 0u;
         uint pend = 0u;
-        for (uint i = first_i; i < end_i; ++i, ++bit) {
-            if (((V(ls_pair_bits)[bit >> 5u] >> (bit & 31u)) & 1u) != 0u) {
-                pend = ls_put_candidate(CTX_ARG first, count, i - begin, pend);
+        for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {  // the row 32 bits at a time, its set bits in order
+            uint span = min(end_i - first_i - k0, 32u);
+            uint at = bit + k0;
+            uint w = V(ls_pair_bits)[at >> 5u] >> (at & 31u);
+            if ((at & 31u) != 0u && (at & 31u) + span > 32u) w |= V(ls_pair_bits)[(at >> 5u) + 1u] << (32u - (at & 31u));
+            if (span < 32u) w &= (1u << span) - 1u;
+            for (; w != 0u; w &= w - 1u) {
+                pend = ls_put_candidate(CTX_ARG first, count, first_i + k0 + LOWEST_BIT(w) - begin, pend);
                 count += 1u;
             }
         }
