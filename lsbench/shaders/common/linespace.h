@@ -357,7 +357,7 @@ LS_CELL_SEARCH(ls_item_cell, ls_item_bases)
 // ---- Triangle / shaft test ------------------------------------------------------------------
 // Conservative: the shaft's facet planes are pushed out by ls_eps (cell-local units), so float
 // rounding in the build or in the traversal's patch lookup never drops a triangle the shaft meets.
-// Cheap outcomes first (ls_facet_verdict, below): all corners outside one plane -> no; all corners inside every
+// Cheap outcomes first (ls_facet_verdict, below): all corners outside one plane -> no; all inside every
 // plane -> yes; otherwise the exact test the build compiles in (linespace.py: exact_test): by
 // default "edges" (LS_EXACT_EDGES: a triangle edge in the pushed volume or a volume edge through
 // the triangle, ls_volume_edge_meets); or clip the triangle against the planes (Sutherland-Hodgman,
@@ -527,7 +527,7 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 //    after the facet planes of 3 left it undecided, one of its edges runs inside the shaft
 //    (ls_segment_in_shaft): the triangle meets the shaft volume itself, which every test of 3
 //    accepts with the margin ls_eps to spare;
-// 3. otherwise the facet planes (ls_side) and the exact test, as before.
+// 3. otherwise the facet planes (ls_facet_verdict) and the exact test, as before.
 // 1 and 2 only skip work whose outcome they know: the lists are those of 3 alone (the tests
 // compare them with the numpy reference of lsbench/oracle/reference.py: shaft_candidates, and
 // docs/linespace-build.md with the lists of the build before 1 and 2 on Sponza).
