@@ -39,7 +39,7 @@ by the facet planes and the exact test (conservative margin LS_EPS), writes the 
 item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
-(ls_hash_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
+(ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
 (ls_head_counts_kernel, ls_shaft_set_kernel); (5) each head's set length, the sum of its items'
 counts (ls_set_len_kernel), exclusive scans of the sets per cell and of those lengths (set
 offsets), then the offsets array (ls_layout_kernel) and each head item's destination, its set's
@@ -127,10 +127,10 @@ LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 floa
 # from them; where those of all cells do not fit, the cells go in batches whose bits do, each
 # batch's sets are found while its bits are there, and the fill tests the pairs again.
 LS_PAIR_BITS_BYTES = 256 * 2**20
-# Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the hashes,
-# slots and heads 8.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
+# Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the slots
+# and heads 4.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
-# Bits of the row hash kept (linespace.h: ls_hash_kernel); tests set fewer, so that different sets
+# Bits of the row hash kept (linespace.h: ls_row_hash); tests set fewer, so that different sets
 # collide and only the word-by-word compare tells them apart.
 LS_HASH_MASK = 0xFFFFFFFF
 # The shaft -> set index is 16 bits wide (linespace.h): a cell may hold at most 2^16 sets.
@@ -207,10 +207,9 @@ def _uints(*names: str) -> tuple:
     return tuple(Buf(name, "uint", access) for name, access in (item.split(":") for item in names))
 
 
-# Finding the distinct sets of a group of cells (linespace.h: ls_hash_kernel .. ls_shaft_set_kernel).
+# Finding the distinct sets of a group of cells (linespace.h: ls_insert_kernel .. ls_shaft_set_kernel).
 _ROW_BUFFERS = _uints("ls_cell_ranges:r", "ls_ref_bases:r") + (LS_PAIR_BITS_FILL,)
-LS_HASH = _sets_kernel("ls_hash", _ROW_BUFFERS + _uints("ls_set_hash:w"))
-LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_hash:r", "ls_set_table:rw", "ls_set_slot:w"))
+LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_table:rw", "ls_set_slot:w"))
 LS_MIN = _sets_kernel("ls_min", _uints("ls_set_table:rw", "ls_set_slot:r"))
 LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "ls_set_heads:rw", "ls_cell_sets:rw"))
 LS_HEAD_COUNTS = _sets_kernel("ls_head_counts", _uints("ls_set_heads:r", "ls_head_counts:w"))
@@ -229,7 +228,7 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_HASH, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET,
                LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CARRY)
 
@@ -656,13 +655,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
         group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, ls_pair_bits=bits,
-                          ls_set_hash=temp("ls_set_hash", 4 * group_shafts, zero=False),
                           ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, **shaft_set_bufs)
-        hash_spec = LS_HASH if LS_HASH_MASK == 0xFFFFFFFF else LS_HASH.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
+        insert_spec = LS_INSERT if LS_HASH_MASK == 0xFFFFFFFF else LS_INSERT.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
         shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET)
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
@@ -698,7 +696,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 words = -(-shafts // 32)
                 zero(group_bufs["ls_set_heads"], words)
                 bu = batch_uniforms(g0, g1, bits_base)
-                for spec in (hash_spec, LS_INSERT, LS_MIN, LS_HEADS):
+                for spec in (insert_spec, LS_MIN, LS_HEADS):
                     device.dispatch(spec, shafts, group_bufs, bu)
                 device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
                 device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word

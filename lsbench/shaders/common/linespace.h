@@ -721,7 +721,7 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
 // With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
 // cell c's bits start at (ls_ref_bases[c] - ls_bits_base) * 15 N^4, shaft-major: the bits of all
-// cells, or of one batch where they do not all fit), the sets are found from them (ls_hash_kernel
+// cells, or of one batch where they do not all fit), the sets are found from them (ls_insert_kernel
 // below) and the fill only reads them. Either fill writes only each set's first shaft: the other
 // shafts' items hold LS_SKIP.
 //
@@ -1060,18 +1060,20 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#if defined(KERNEL_ls_hash) || defined(KERNEL_ls_insert)
+#ifdef KERNEL_ls_insert
 // ---- Build: one list per distinct candidate set of a cell (issue 16) -----------------------
 // A group of cells [ls_cell_first, ls_cell_end) at a time, its shafts numbered b = 0.. from the
 // group's first: shaft b's decisions are its row of ls_pair_bits (one bit per reference of its
-// cell, in list order), so two shafts have the same set iff their rows are equal. (1) ls_hash: a
-// hash per row; (2) ls_insert: each shaft looks its row up in its cell's open-addressing table of
-// 2 x 15 N^4 slots, claiming an empty slot (compare-and-swap) or joining the slot whose claimer
-// has the same hash AND, compared word by word, the same row: the hash only picks the slot, it
-// never decides equality; (3) ls_min: each slot ends holding its smallest member, so the result
-// does not depend on which member claimed it first; (4) ls_heads: that member is the set's first
-// shaft (its "head"); (5) ls_shaft_set: a shaft's set index within its cell = the heads before its
-// head, so sets are numbered in the order of their first shaft.
+// cell, in list order), so two shafts have the same set iff their rows are equal. (1) ls_insert:
+// each shaft hashes its row and looks it up in its cell's open-addressing table of 2 x 15 N^4
+// slots from the hash's slot, claiming an empty slot (compare-and-swap) or joining the slot whose
+// claimer has, compared word by word, the same row: the hash only picks the first slot, it never
+// decides equality (a kernel of its own wrote the hashes for a compare before the rows' until the
+// twenty-eighth session: PoCL 0.18 s, Sponza grid-ls 64³ N=3, where the table's slots are mostly
+// free and a row is one or two words); (2) ls_min: each slot ends holding its smallest member,
+// so the result does not depend on which member claimed it first; (3) ls_heads: that member is the
+// set's first shaft (its "head"); (4) ls_shaft_set: a shaft's set index within its cell = the
+// heads before its head, so sets are numbered in the order of their first shaft.
 // Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
 INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
@@ -1088,23 +1090,16 @@ INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
 }
 #endif
 
-#ifdef KERNEL_ls_hash
-INLINE void ls_hash_kernel(CTX_PARAM uint b) {
-    uint shafts = V(ls_shafts);
-    uint s = V(ls_cell_first) * shafts + b;
-    uint cell = s / shafts;
-    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
-    uint start = ls_row_start(CTX_ARG cell, s % shafts, len);
+#ifdef KERNEL_ls_insert
+INLINE uint ls_row_hash(CTX_PARAM uint start, uint len) {
     uint h = 2166136261u;  // FNV-1a over the row's words
     for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
 #ifdef LS_HASH_MASK
     h &= LS_HASH_MASK;  // tests: a hash that collides, so only the word-by-word compare tells sets apart
 #endif
-    V(ls_set_hash)[b] = h;
+    return h;
 }
-#endif
 
-#ifdef KERNEL_ls_insert
 INLINE int ls_rows_equal(CTX_PARAM uint start_a, uint start_b, uint len) {
     for (uint k = 0u; 32u * k < len; ++k)
         if (ls_row_word(CTX_ARG start_a, len, k) != ls_row_word(CTX_ARG start_b, len, k)) return 0;
@@ -1120,8 +1115,7 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
     uint start = ls_row_start(CTX_ARG cell, (b0 + b) % shafts, len);
     uint size = 2u * shafts;
     uint region = (cell - V(ls_cell_first)) * size;
-    uint h = V(ls_set_hash)[b];
-    uint slot = h % size;
+    uint slot = ls_row_hash(CTX_ARG start, len) % size;
     // At most `shafts` of the `size` slots are ever taken, so an empty one comes within size probes.
     for (uint probe = 0u; probe < size; ++probe) {
         uint at = region + slot;
@@ -1131,8 +1125,7 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
             if (v == 0u) { V(ls_set_slot)[b] = at; return; }
         }
         uint other = v - 1u;
-        if (V(ls_set_hash)[other] == h &&
-            ls_rows_equal(CTX_ARG ls_row_start(CTX_ARG cell, (b0 + other) % shafts, len), start, len) != 0) {
+        if (ls_rows_equal(CTX_ARG ls_row_start(CTX_ARG cell, (b0 + other) % shafts, len), start, len) != 0) {
             V(ls_set_slot)[b] = at;
             return;
         }
