@@ -718,6 +718,20 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
+#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS))
+// A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
+// from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
+// Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
+INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
+    uint pos = start + 32u * k;
+    uint bits = min(len - 32u * k, 32u);
+    uint off = pos & 31u;
+    uint w = V(ls_pair_bits)[pos >> 5u] >> off;
+    if (off != 0u && off + bits > 32u) w |= V(ls_pair_bits)[(pos >> 5u) + 1u] << (32u - off);
+    return bits < 32u ? (w & ((1u << bits) - 1u)) : w;
+}
+#endif
+
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
 // With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
 // cell c's bits start at (ls_ref_bases[c] - ls_bits_base) * 15 N^4, shaft-major: the bits of all
@@ -827,12 +841,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint count = 0u;
         uint pend = 0u;
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {  // the row 32 bits at a time, its set bits in order
-            uint span = min(end_i - first_i - k0, 32u);
-            uint at = bit + k0;
-            uint w = V(ls_pair_bits)[at >> 5u] >> (at & 31u);
-            if ((at & 31u) != 0u && (at & 31u) + span > 32u) w |= V(ls_pair_bits)[(at >> 5u) + 1u] << (32u - (at & 31u));
-            if (span < 32u) w &= (1u << span) - 1u;
-            for (; w != 0u; w &= w - 1u) {
+            for (uint w = ls_row_word(CTX_ARG bit, end_i - first_i, k0 >> 5u); w != 0u; w &= w - 1u) {
                 pend = ls_put_candidate(CTX_ARG first, count, first_i + k0 + LOWEST_BIT(w) - begin, pend);
                 count += 1u;
             }
@@ -1079,15 +1088,6 @@ INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
 }
 
-// Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
-INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
-    uint pos = start + 32u * k;
-    uint bits = min(len - 32u * k, 32u);
-    uint off = pos & 31u;
-    uint w = V(ls_pair_bits)[pos >> 5u] >> off;
-    if (off != 0u && off + bits > 32u) w |= V(ls_pair_bits)[(pos >> 5u) + 1u] << (32u - off);
-    return bits < 32u ? (w & ((1u << bits) - 1u)) : w;
-}
 #endif
 
 #ifdef KERNEL_ls_insert
