@@ -399,6 +399,45 @@ def test_shaft_volumes_are_hulls_of_their_patches(device):
     device.release(buf)
 
 
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_cull_margin_covers_the_pushed_volumes(device, n):
+    """The masks' cull margin (linespace.h: ls_masks_kernel) is at least how far any shaft's volume
+    with its facet planes pushed out by LS_EPS reaches past its hull, and not much more. The
+    volume's vertices are found here in float64, independently of the device's edges: every
+    feasible intersection of three pushed facet planes, and its distance to the nearest patch
+    corner."""
+    built = backends.build(device, "grid-ls", random_scene(), BuildParams((2, 2, 2), ls_n=n))
+    margin = built.stats["ls_cull_margin"]
+    built.release()
+    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
+    shafts = 15 * n**4
+    buf = device.alloc("ls_planes", 16 * linespace.LS_PLANE_SLOTS * shafts)
+    device.dispatch(linespace.LS_PLANES, shafts, {"ls_planes": buf}, linespace.uniforms(geometry, n))
+    planes = device.read(buf, np.float32).reshape(shafts, linespace.LS_PLANE_SLOTS, 4)[:, :linespace.LS_MAX_PLANES]
+    device.release(buf)
+    corner_uv = np.array([[0, 0], [0, 1], [1, 0], [1, 1.0]])
+    triples = np.array([t for t in np.ndindex(8, 8, 8) if t[0] < t[1] < t[2]])
+    reach = 0.0
+    s = 0
+    for a, b in FACE_PAIRS:
+        for pa in range(n * n):
+            for pb in range(n * n):
+                corners = np.vstack([patch_points(a, pa, n, corner_uv), patch_points(b, pb, n, corner_uv)])
+                real = planes[s][np.abs(planes[s][:, :3]).sum(1) > 0].astype(np.float64)
+                s += 1
+                usable = triples[(triples < len(real)).all(1)]
+                normals = real[usable, :3]  # (triples, 3 planes, xyz)
+                solvable = np.abs(np.linalg.det(normals)) > 1e-9
+                rhs = linespace.LS_EPS - real[usable, 3]  # n . x + w = eps on each of the three
+                vertices = np.linalg.solve(normals[solvable], rhs[solvable][..., None])[..., 0]
+                inside = (vertices @ real[:, :3].T + real[:, 3] <= linespace.LS_EPS + 1e-9).all(1)
+                dist = np.linalg.norm(vertices[inside][:, None] - corners[None], axis=2).min(1)
+                assert len(dist) >= 6
+                reach = max(reach, float(dist.max()))
+    assert linespace.LS_EPS <= reach
+    assert reach + linespace.LS_CULL_SLACK <= margin <= 1.02 * reach + 1e-5 + linespace.LS_CULL_SLACK, (reach, margin)
+
+
 @pytest.mark.parametrize("scene_name,resolution,size", [
     ("spheres", (12, 12, 12), (40, 30)), ("atrium", (12, 6, 9), (40, 30)),
 ])

@@ -90,6 +90,10 @@ LS_PLANE_SLOTS = 10  # per shaft in ls_planes: the facet planes, then the axis' 
 # Conservative margin of the shaft planes, in cell-local units (the cell is the unit cube): covers
 # float rounding of the build's world -> cell mapping and of the traversal's entry/exit points.
 LS_EPS = 1e-3
+# What the masks' cull margin adds to the largest reach of the shaft volumes pushed out by LS_EPS
+# beyond their hulls (linespace.h: ls_masks_kernel, where the margin is argued): ten times the
+# edges test's in-triangle tolerance (LS_IN_TRIANGLE_TOL, 1e-5).
+LS_CULL_SLACK = 1e-4
 UINT32_MAX = 2**32 - 1
 # Most buffers the shaft offsets or the candidate list is split over. llvmpipe allows 16 storage
 # buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
@@ -155,7 +159,10 @@ LS_PLANES = KernelSpec(
 LS_EDGE_SLOTS = 1 + 2 * 28 + 8  # must match shaders/common/linespace.h (LS_MAX_EDGES, the hull's corners)
 LS_EDGES = KernelSpec(
     "ls_edges", LS_HEADERS_NO_SCENE, "ls_edges_kernel",
-    (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w")), LS_UNIFORMS)
+    (Buf("ls_planes", "float4", "r"), Buf("ls_edges", "float4", "w"), Buf("ls_reach", "float", "w")), LS_UNIFORMS)
+# Only each shaft's reach (the cull margin's), where another exact test runs: no table of edges.
+LS_REACH = dataclasses.replace(
+    LS_EDGES, buffers=tuple(b for b in LS_EDGES.buffers if b.name != "ls_edges")).with_defines(LS_REACH_ONLY=1)
 _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
 _ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"),
@@ -173,7 +180,7 @@ LS_PAIR_BITS_FILL = Buf("ls_pair_bits", "uint", "r")
 LS_MASKS = KernelSpec(
     "ls_masks", LS_HEADERS, "ls_masks_kernel",
     SCENE_BUFFERS + _CELL_BUFFERS + (Buf("ls_masks", "uint", "w"), Buf("ls_local_tris", "float4", "w")),
-    LS_BATCH_UNIFORMS)
+    LS_BATCH_UNIFORMS + (Uniform("ls_cull_margin", "float"),))
 # The count pass writes each item's count where its offset will be; the scan turns them into
 # offsets in place (no second array of the offsets' size where every cell is one chunk).
 LS_COUNT = KernelSpec(
@@ -228,7 +235,7 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET,
                LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CARRY)
 
@@ -630,10 +637,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     try:
         planes = temp("ls_planes", 16 * LS_PLANE_SLOTS * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
+        # The pushed volumes' edges (the "edges" exact test) and their reach beyond the hulls: the
+        # largest sizes the masks' cull margin, whichever test runs (linespace.h: ls_masks_kernel).
         by_edges = exact_test(device) == "edges"
         edges = temp("ls_edges", 16 * LS_EDGE_SLOTS * per_cell if by_edges else 4, zero=False)
-        if by_edges:
-            device.dispatch(LS_EDGES, per_cell, {"ls_planes": planes, "ls_edges": edges}, u)
+        reach = temp("ls_reach", 4 * per_cell, zero=False)
+        device.dispatch(LS_EDGES if by_edges else LS_REACH, per_cell,
+                        {"ls_planes": planes, "ls_edges": edges, "ls_reach": reach}, u)
+        cull_margin = max(float(device.read(reach, np.float32).max()), LS_EPS) + LS_CULL_SLACK
         stats_buf = temp("ls_stats", 16)
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
@@ -707,7 +718,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
-            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
+            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, dict(bu, ls_cull_margin=cull_margin))
             if not all_bits:
                 zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
@@ -764,7 +775,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
-                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
+                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, dict(bu, ls_cull_margin=cull_margin))
             shaft_pass(fill, c0, c1, fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:
@@ -792,6 +803,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_id_bits": id_bits,
         "ls_bytes": sum(b.nbytes for b in offset_bufs.values()) + sum(b.nbytes for b in tris_bufs.values()),
         "ls_exact_test": exact_test(device),
+        "ls_cull_margin": cull_margin,
         "ls_offset_buffers": offsets.chunks,
         "ls_tri_buffers": candidates.chunks,
         "ls_candidate_chunk": plan.chunk,

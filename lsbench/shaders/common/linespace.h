@@ -279,7 +279,9 @@ INLINE void ls_planes_kernel(CTX_PARAM uint shaft) {
 // The volume {x : dist(pl, x) <= eps for every facet plane} (what the clipper of ls_clip_meets
 // clips against). Each pair of non-parallel facets whose planes meet along a stretch inside the
 // other facets' half-spaces gives an edge: the line of the two pushed planes, clipped to the
-// others (Liang-Barsky). Once per N and shaft, like the planes.
+// others (Liang-Barsky). Once per N and shaft, like the planes. R also goes to ls_reach (one float
+// per shaft), whose largest sizes the masks' cull margin (ls_masks_kernel) whichever exact test
+// runs; with LS_REACH_ONLY (another exact test) the table is not written.
 INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
     float eps = V(ls_eps);
     uint pb = shaft * U32(LS_PLANE_SLOTS);
@@ -314,8 +316,10 @@ INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
             if (r.x < r.y && count < U32(LS_MAX_EDGES)) {
                 float3 e0 = x0 + d * r.x;
                 float3 e1 = x0 + d * r.y;
+#ifndef LS_REACH_ONLY
                 V(ls_edges)[base + 1u + 2u * count] = make_float4(e0.x, e0.y, e0.z, 0.0f);
                 V(ls_edges)[base + 2u + 2u * count] = make_float4(e1.x, e1.y, e1.z, 0.0f);
+#endif
                 float n0 = INF_F, n1 = INF_F;
                 for (int k = 0; k < 8; ++k) {
                     n0 = min(n0, length(e0 - P[k]));
@@ -326,15 +330,18 @@ INLINE void ls_edges_kernel(CTX_PARAM uint shaft) {
             }
         }
     }
+    // 1 % and 1e-6 over what float32 measured: a bound, not an estimate.
+    reach = reach * 1.01f + 1e-6f;
+    V(ls_reach)[shaft] = reach;
+#ifndef LS_REACH_ONLY
     uint corners = base + U32(LS_EDGE_CORNERS);
     for (int k = 0; k < 8; ++k) V(ls_edges)[corners + U32(k)] = make_float4(P[k].x, P[k].y, P[k].z, 0.0f);
-    // 1 % and 1e-6 over what float32 measured: a bound, not an estimate.
-    V(ls_edges)[base] = make_float4(F32(count), reach * 1.01f + 1e-6f, 0.0f, 0.0f);
+    V(ls_edges)[base] = make_float4(F32(count), reach, 0.0f, 0.0f);
+#endif
 }
 #endif
 
 #if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill) || defined(KERNEL_ls_masks)
-#define LS_CULL_MARGIN 0.05f       // cell-local units: 50 x ls_eps (linespace.py: LS_EPS)
 #define LS_CULL_BITS 0x3ffffffu     // bits 0..25: 13 axes x (below, above)
 #define LS_MEETS_PATCH 0x4000000u   // the triangle crosses the patch
 #define LS_ABOVE_PLANE 0x8000000u   // the triangle covers the cell and the patch lies above its plane
@@ -521,7 +528,7 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 // Per (shaft, triangle) pair, cheapest decision first (docs/linespace-build.md has the figures):
 // 1. cull: the AND of the triangle's masks (ls_masks_kernel) of the shaft's two patches; a common
 //    bit is an axis on which both patches, hence their hull, lie beyond the triangle by
-//    LS_CULL_MARGIN = 50 ls_eps, far outside what the tests of 3 accept;
+//    ls_cull_margin (ls_masks_kernel), beyond the reach of anything the tests of 3 accept;
 // 2. certain: the triangle crosses one of the two patches (LS_MEETS_PATCH), or it covers the
 //    cell's cut with its plane and the patches lie on opposite sides (LS_ABOVE/BELOW_PLANE), or
 //    after the facet planes of 3 left it undecided, one of its edges runs inside the shaft
@@ -940,13 +947,23 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 // cell, writing the 6 N^2 masks of patches face * N^2 + p (see `row` below). The triangle's set-up
 // (its cell, vertices, axes and intervals) is paid once for the 6 faces: with an item per (reference,
 // face) it took half of this kernel at N = 2.
-// Cull bits: bit 2k is set when on axis k the patch lies below the triangle by LS_CULL_MARGIN
+// Cull bits: bit 2k is set when on axis k the patch lies below the triangle by the cull margin
 // (scaled by the axis length), bit 2k + 1 when above. A shaft's hull projects onto an axis as the
 // hull of its two patches' projections, so the hull lies beyond the triangle on axis k iff both
 // patches have the same bit: one AND per pair. Axes: the 13 of a triangle/box test (Akenine-
 // Moeller 2001), the cell axes, the triangle normal and the edges crossed with the cell axes; none
 // depends on the shaft, so a triangle's 6 N^2 masks serve all 15 N^4 shafts of its cell.
 // Certain bits: LS_MEETS_PATCH, LS_ABOVE_PLANE / LS_BELOW_PLANE (linespace.h, build section).
+// The cull margin (cell-local units): how far beyond a shaft's hull a triangle that a test of
+// step 3 accepts can lie, so that the cull removes only pairs those tests reject. Each accepted
+// triangle meets the volume P of the facet planes pushed out by ls_eps (the clipper exactly; the
+// edges test up to LS_IN_TRIANGLE_TOL; the SAT lies within ls_eps of the hull along the axis of
+// the closest features), and P is the hull of its vertices, each within R of a hull corner
+// (ls_edges_kernel), so P lies in the hull grown by a ball of radius R and reaches at most R past
+// the hull's interval on any unit axis. The uniform ls_cull_margin is the largest R (ls_reach) over the
+// shafts (0.0076 at N = 3; never below ls_eps) plus linespace.py's LS_CULL_SLACK; each triangle
+// adds 1e-6 of its largest cell-local coordinate for the float32 rounding of its projections.
+// (Until the twenty-ninth session a fixed 0.05 = 50 ls_eps; 0.005 was found to cull accepted pairs.)
 // Projection interval of a patch (face axis `axis` at coordinate `side`, in-face ranges u, v) on
 // axis ax: the corners differ only in u and v.
 INLINE float2 ls_patch_interval(float3 ax, int axis, float side, float2 u, float2 v) {
@@ -958,9 +975,9 @@ INLINE float2 ls_patch_interval(float3 ax, int axis, float side, float2 u, float
 }
 
 // Cull bits of axis ax: t = the triangle's interval on it.
-INLINE uint ls_axis_bits(float3 ax, float2 t, int axis, float side, float2 u, float2 v, uint bit) {
+INLINE uint ls_axis_bits(float3 ax, float2 t, int axis, float side, float2 u, float2 v, uint bit, float margin) {
     float2 h = ls_patch_interval(ax, axis, side, u, v);
-    float m = LS_CULL_MARGIN * length(ax);
+    float m = margin * length(ax);
     return ((h.y < t.x - m ? 1u : 0u) | (h.x > t.y + m ? 2u : 0u)) << bit;
 }
 
@@ -1025,6 +1042,8 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float2 t0 = ls_tri_interval(x0, a, b, c), t1 = ls_tri_interval(x1, a, b, c), t2 = ls_tri_interval(x2, a, b, c);
     float2 t3 = ls_tri_interval(x3, a, b, c), t4 = ls_tri_interval(x4, a, b, c), t5 = ls_tri_interval(x5, a, b, c);
     float2 t6 = ls_tri_interval(x6, a, b, c), t7 = ls_tri_interval(x7, a, b, c), t8 = ls_tri_interval(x8, a, b, c);
+    float3 far = max(fabs(a), max(fabs(b), fabs(c)));
+    float margin = V(ls_cull_margin) + 1e-6f * max(1.0f, max(far.x, max(far.y, far.z)));
     int covers = ls_covers_cell(a, b, c, nrm);
     float nd = dot(nrm, a);
     float fn = F32(n);
@@ -1046,13 +1065,13 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
             float pu = F32(I32(p % n)), pv = F32(I32(p / n));
             float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
             float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
-            uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u) | ls_axis_bits(ey, ty, axis, side, u, v, 2u)
-                      | ls_axis_bits(ez, tz, axis, side, u, v, 4u) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u)
-                      | ls_axis_bits(x0, t0, axis, side, u, v, 8u) | ls_axis_bits(x1, t1, axis, side, u, v, 10u)
-                      | ls_axis_bits(x2, t2, axis, side, u, v, 12u) | ls_axis_bits(x3, t3, axis, side, u, v, 14u)
-                      | ls_axis_bits(x4, t4, axis, side, u, v, 16u) | ls_axis_bits(x5, t5, axis, side, u, v, 18u)
-                      | ls_axis_bits(x6, t6, axis, side, u, v, 20u) | ls_axis_bits(x7, t7, axis, side, u, v, 22u)
-                      | ls_axis_bits(x8, t8, axis, side, u, v, 24u);
+            uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u, margin) | ls_axis_bits(ey, ty, axis, side, u, v, 2u, margin)
+                      | ls_axis_bits(ez, tz, axis, side, u, v, 4u, margin) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u, margin)
+                      | ls_axis_bits(x0, t0, axis, side, u, v, 8u, margin) | ls_axis_bits(x1, t1, axis, side, u, v, 10u, margin)
+                      | ls_axis_bits(x2, t2, axis, side, u, v, 12u, margin) | ls_axis_bits(x3, t3, axis, side, u, v, 14u, margin)
+                      | ls_axis_bits(x4, t4, axis, side, u, v, 16u, margin) | ls_axis_bits(x5, t5, axis, side, u, v, 18u, margin)
+                      | ls_axis_bits(x6, t6, axis, side, u, v, 20u, margin) | ls_axis_bits(x7, t7, axis, side, u, v, 22u, margin)
+                      | ls_axis_bits(x8, t8, axis, side, u, v, 24u, margin);
             if (cuts != 0) {
                 float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
                 r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
