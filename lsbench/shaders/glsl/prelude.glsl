@@ -46,6 +46,9 @@
 #define ATOMIC_CAS(lvalue, expected, v) atomicCompSwap(lvalue, expected, v)
 #define POPCOUNT(x) U32(bitCount(x))  // set bits of a uint, as a uint
 #define LOWEST_BIT(x) uint(findLSB(x))  // the index of the lowest set bit of a non-zero uint
+// The high word of the 64-bit product of two uints (a * b / 2^32: maps a hash onto [0, b) without a division)
+uint mul_hi_u32(uint a, uint b) { uint hi, lo; umulExtended(a, b, hi, lo); return hi; }
+#define MUL_HI(a, b) mul_hi_u32(a, b)
 #define LANG_GLSL 1
 #define PREFETCH(p)  // GLSL has no prefetch (opencl/prelude.cl: only CPUs need it)
 // Device clock for the profiling counters (COUNT_WORK builds; Delgado Kraemer 2019, 6.3, Fig. 20b):

@@ -46,6 +46,7 @@
 #define ATOMIC_CAS(lvalue, expected, v) atomic_cmpxchg(&(lvalue), expected, v)
 #define POPCOUNT(x) popcount(x)  // set bits of a uint, as a uint
 #define LOWEST_BIT(x) ctz(x)  // the index of the lowest set bit of a non-zero uint, as a uint
+#define MUL_HI(a, b) mul_hi(a, b)  // the high word of the 64-bit product of two uints
 #define LANG_OPENCL 1
 // A software prefetch of the cache line at address p, where the kernel runs on a CPU: PoCL compiles
 // for the host with clang, and its OpenCL prefetch() is a no-op there. A walk prefetches the nodes
