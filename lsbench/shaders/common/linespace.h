@@ -562,11 +562,15 @@ INLINE int ls_masks_certain(uint ma, uint mb) {
 // (a, 0), (b, 0), (c, 0). Where the pair loops are vector loops (LS_CULL_RUNS, ls_run_meets)
 // linespace.py binds the buffer as plain floats (12 per reference): they and the scalar forms
 // below keep those loops free of vector-typed values, which LLVM's loop vectorizer does not take.
-// Elsewhere the vec4 loads stay (llvmpipe's count took 10 % longer with 9 float loads).
+// Elsewhere the vec4 loads stay (llvmpipe's count took 10 % longer with 9 float loads). The
+// indices are ints: a signed 32-bit index lets x86 gather 8 floats with 32-bit offsets
+// (vgatherdps), where an unsigned one, widened to 64 bits, took two 4-float vgatherqps (Sponza
+// grid-ls 64³ N=3: ls_count 4.16-4.31 -> 3.68-3.72 s). The buffer holds a batch's references, 48
+// bytes each in a buffer the driver allows (linespace.py: plan_build), so 12 r + 11 < 2^31.
 #ifdef LS_CULL_RUNS
-#define LS_TRI_ARGS(r) V(ls_local_tris)[12u * (r)], V(ls_local_tris)[12u * (r) + 1u], V(ls_local_tris)[12u * (r) + 2u], \
-    V(ls_local_tris)[12u * (r) + 4u], V(ls_local_tris)[12u * (r) + 5u], V(ls_local_tris)[12u * (r) + 6u], \
-    V(ls_local_tris)[12u * (r) + 8u], V(ls_local_tris)[12u * (r) + 9u], V(ls_local_tris)[12u * (r) + 10u]
+#define LS_TRI_ARGS(r) V(ls_local_tris)[I32(12u * (r))], V(ls_local_tris)[I32(12u * (r) + 1u)], V(ls_local_tris)[I32(12u * (r) + 2u)], \
+    V(ls_local_tris)[I32(12u * (r) + 4u)], V(ls_local_tris)[I32(12u * (r) + 5u)], V(ls_local_tris)[I32(12u * (r) + 6u)], \
+    V(ls_local_tris)[I32(12u * (r) + 8u)], V(ls_local_tris)[I32(12u * (r) + 9u)], V(ls_local_tris)[I32(12u * (r) + 10u)]
 #else
 #define LS_TRI_ARGS(r) V(ls_local_tris)[3u * (r)].x, V(ls_local_tris)[3u * (r)].y, V(ls_local_tris)[3u * (r)].z, \
     V(ls_local_tris)[3u * (r) + 1u].x, V(ls_local_tris)[3u * (r) + 1u].y, V(ls_local_tris)[3u * (r) + 1u].z, \
