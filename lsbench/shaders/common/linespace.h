@@ -978,11 +978,24 @@ INLINE float2 ls_patch_interval(float3 ax, int axis, float side, float2 u, float
                        base + max(au * u.x, au * u.y) + max(av * v.x, av * v.y));
 }
 
-// Cull bits of axis ax: t = the triangle's interval on it.
-INLINE uint ls_axis_bits(float3 ax, float2 t, int axis, float side, float2 u, float2 v, uint bit, float margin) {
-    float2 h = ls_patch_interval(ax, axis, side, u, v);
+// The cull thresholds of axis ax: the triangle's interval t on it widened by the margin (x |ax|).
+INLINE float2 ls_cull_range(float3 ax, float2 t, float margin) {
     float m = margin * length(ax);
-    return ((h.y < t.x - m ? 1u : 0u) | (h.x > t.y + m ? 2u : 0u)) << bit;
+    return make_float2(t.x - m, t.y + m);
+}
+
+// Axis ax on a face (axis `axis`, coordinate `side`): its u and v components and the face's offset
+// along it, as ls_patch_interval uses them; once per face and axis, not per patch.
+INLINE float3 ls_face_terms(float3 ax, int axis, float side) {
+    return make_float3(comp3(ax, (axis + 1) % 3), comp3(ax, (axis + 2) % 3), comp3(ax, axis) * side);
+}
+
+// Cull bits of an axis (face terms f, thresholds r) for the patch u x v: ls_patch_interval's
+// arithmetic on the hoisted terms (the same floats, so the same bits).
+INLINE uint ls_axis_bits(float3 f, float2 r, float2 u, float2 v, uint bit) {
+    float lo = f.z + min(f.x * u.x, f.x * u.y) + min(f.y * v.x, f.y * v.y);
+    float hi = f.z + max(f.x * u.x, f.x * u.y) + max(f.y * v.x, f.y * v.y);
+    return ((hi < r.x ? 1u : 0u) | (lo > r.y ? 2u : 0u)) << bit;
 }
 
 INLINE float2 ls_tri_interval(float3 ax, float3 a, float3 b, float3 c) {
@@ -1041,13 +1054,15 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float3 x0 = cross(e0, ex), x1 = cross(e0, ey), x2 = cross(e0, ez);
     float3 x3 = cross(e1, ex), x4 = cross(e1, ey), x5 = cross(e1, ez);
     float3 x6 = cross(e2, ex), x7 = cross(e2, ey), x8 = cross(e2, ez);
-    float2 tx = ls_tri_interval(ex, a, b, c), ty = ls_tri_interval(ey, a, b, c), tz = ls_tri_interval(ez, a, b, c);
-    float2 tn = ls_tri_interval(nrm, a, b, c);
-    float2 t0 = ls_tri_interval(x0, a, b, c), t1 = ls_tri_interval(x1, a, b, c), t2 = ls_tri_interval(x2, a, b, c);
-    float2 t3 = ls_tri_interval(x3, a, b, c), t4 = ls_tri_interval(x4, a, b, c), t5 = ls_tri_interval(x5, a, b, c);
-    float2 t6 = ls_tri_interval(x6, a, b, c), t7 = ls_tri_interval(x7, a, b, c), t8 = ls_tri_interval(x8, a, b, c);
     float3 far = max(fabs(a), max(fabs(b), fabs(c)));
     float margin = V(ls_cull_margin) + 1e-6f * max(1.0f, max(far.x, max(far.y, far.z)));
+    float2 rx = ls_cull_range(ex, ls_tri_interval(ex, a, b, c), margin), ry = ls_cull_range(ey, ls_tri_interval(ey, a, b, c), margin);
+    float2 rz = ls_cull_range(ez, ls_tri_interval(ez, a, b, c), margin), rn = ls_cull_range(nrm, ls_tri_interval(nrm, a, b, c), margin);
+    float2 r0 = ls_cull_range(x0, ls_tri_interval(x0, a, b, c), margin), r1 = ls_cull_range(x1, ls_tri_interval(x1, a, b, c), margin);
+    float2 r2 = ls_cull_range(x2, ls_tri_interval(x2, a, b, c), margin), r3 = ls_cull_range(x3, ls_tri_interval(x3, a, b, c), margin);
+    float2 r4 = ls_cull_range(x4, ls_tri_interval(x4, a, b, c), margin), r5 = ls_cull_range(x5, ls_tri_interval(x5, a, b, c), margin);
+    float2 r6 = ls_cull_range(x6, ls_tri_interval(x6, a, b, c), margin), r7 = ls_cull_range(x7, ls_tri_interval(x7, a, b, c), margin);
+    float2 r8 = ls_cull_range(x8, ls_tri_interval(x8, a, b, c), margin);
     int covers = ls_covers_cell(a, b, c, nrm);
     float nd = dot(nrm, a);
     float fn = F32(n);
@@ -1065,17 +1080,20 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
         float2 cut0 = ls_face_uv(ia != ib ? ls_plane_cut(a, b, da, db) : ls_plane_cut(b, c, db, dc), axis);
         float2 cut1 = ls_face_uv((ia != ib && ib != ic) ? ls_plane_cut(b, c, db, dc) : ls_plane_cut(c, a, dc, da), axis);
         uint row = (V(ls_ref_bases)[cell] - V(ls_ref_base)) * 6u * n2 + U32(face) * n2 * refs + nth;
+        float3 fx = ls_face_terms(ex, axis, side), fy = ls_face_terms(ey, axis, side), fz = ls_face_terms(ez, axis, side);
+        float3 fnrm = ls_face_terms(nrm, axis, side), f0 = ls_face_terms(x0, axis, side), f1 = ls_face_terms(x1, axis, side);
+        float3 f2 = ls_face_terms(x2, axis, side), f3 = ls_face_terms(x3, axis, side), f4 = ls_face_terms(x4, axis, side);
+        float3 f5 = ls_face_terms(x5, axis, side), f6 = ls_face_terms(x6, axis, side), f7 = ls_face_terms(x7, axis, side);
+        float3 f8 = ls_face_terms(x8, axis, side);
         for (uint p = 0u; p < n2; ++p) {
             float pu = F32(I32(p % n)), pv = F32(I32(p / n));
             float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
             float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
-            uint bits = ls_axis_bits(ex, tx, axis, side, u, v, 0u, margin) | ls_axis_bits(ey, ty, axis, side, u, v, 2u, margin)
-                      | ls_axis_bits(ez, tz, axis, side, u, v, 4u, margin) | ls_axis_bits(nrm, tn, axis, side, u, v, 6u, margin)
-                      | ls_axis_bits(x0, t0, axis, side, u, v, 8u, margin) | ls_axis_bits(x1, t1, axis, side, u, v, 10u, margin)
-                      | ls_axis_bits(x2, t2, axis, side, u, v, 12u, margin) | ls_axis_bits(x3, t3, axis, side, u, v, 14u, margin)
-                      | ls_axis_bits(x4, t4, axis, side, u, v, 16u, margin) | ls_axis_bits(x5, t5, axis, side, u, v, 18u, margin)
-                      | ls_axis_bits(x6, t6, axis, side, u, v, 20u, margin) | ls_axis_bits(x7, t7, axis, side, u, v, 22u, margin)
-                      | ls_axis_bits(x8, t8, axis, side, u, v, 24u, margin);
+            uint bits = ls_axis_bits(fx, rx, u, v, 0u) | ls_axis_bits(fy, ry, u, v, 2u) | ls_axis_bits(fz, rz, u, v, 4u)
+                      | ls_axis_bits(fnrm, rn, u, v, 6u) | ls_axis_bits(f0, r0, u, v, 8u) | ls_axis_bits(f1, r1, u, v, 10u)
+                      | ls_axis_bits(f2, r2, u, v, 12u) | ls_axis_bits(f3, r3, u, v, 14u) | ls_axis_bits(f4, r4, u, v, 16u)
+                      | ls_axis_bits(f5, r5, u, v, 18u) | ls_axis_bits(f6, r6, u, v, 20u) | ls_axis_bits(f7, r7, u, v, 22u)
+                      | ls_axis_bits(f8, r8, u, v, 24u);
             if (cuts != 0) {
                 float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
                 r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
