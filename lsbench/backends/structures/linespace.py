@@ -217,7 +217,6 @@ def _uints(*names: str) -> tuple:
 # Finding the distinct sets of a group of cells (linespace.h: ls_insert_kernel .. ls_shaft_set_kernel).
 _ROW_BUFFERS = _uints("ls_cell_ranges:r", "ls_ref_bases:r") + (LS_PAIR_BITS_FILL,)
 LS_INSERT = _sets_kernel("ls_insert", _ROW_BUFFERS + _uints("ls_set_table:rw", "ls_set_slot:w"))
-LS_MIN = _sets_kernel("ls_min", _uints("ls_set_table:rw", "ls_set_slot:r"))
 LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "ls_set_heads:rw", "ls_cell_sets:rw"))
 LS_HEAD_COUNTS = _sets_kernel("ls_head_counts", _uints("ls_set_heads:r", "ls_head_counts:w"))
 LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_head_counts:r",
@@ -235,7 +234,7 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_MIN, LS_HEADS, LS_HEAD_COUNTS,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET,
                LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CARRY)
 
@@ -707,7 +706,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 words = -(-shafts // 32)
                 zero(group_bufs["ls_set_heads"], words)
                 bu = batch_uniforms(g0, g1, bits_base)
-                for spec in (insert_spec, LS_MIN, LS_HEADS):
+                for spec in (insert_spec, LS_HEADS):
                     device.dispatch(spec, shafts, group_bufs, bu)
                 device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
                 device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word

@@ -1117,13 +1117,16 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 // cell, in list order), so two shafts have the same set iff their rows are equal. (1) ls_insert:
 // each shaft hashes its row and looks it up in its cell's open-addressing table of 2 x 15 N^4
 // slots from the hash's slot, claiming an empty slot (compare-and-swap) or joining the slot whose
-// claimer has, compared word by word, the same row: the hash only picks the first slot, it never
+// member has, compared word by word, the same row: the hash only picks the first slot, it never
 // decides equality (a kernel of its own wrote the hashes for a compare before the rows' until the
 // twenty-eighth session: PoCL 0.18 s, Sponza grid-ls 64³ N=3, where the table's slots are mostly
-// free and a row is one or two words); (2) ls_min: each slot ends holding its smallest member,
-// so the result does not depend on which member claimed it first; (3) ls_heads: that member is the
-// set's first shaft (its "head"); (4) ls_shaft_set: a shaft's set index within its cell = the
-// heads before its head, so sets are numbered in the order of their first shaft.
+// free and a row is one or two words). A joining shaft lowers the slot to itself where it is
+// smaller (atomic min), so each slot ends holding its smallest member whichever claimed it first;
+// every member's row is the same, so a compare against whichever member the slot holds at the
+// time decides the same (until the twenty-ninth session a kernel of its own, ls_min, took the
+// minimum afterwards). (2) ls_heads: that member is the set's first shaft (its "head"); (3)
+// ls_shaft_set: a shaft's set index within its cell = the heads before its head, so sets are
+// numbered in the order of their first shaft.
 // Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
 INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
@@ -1170,20 +1173,12 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
         }
         uint other = v - 1u;  // uint arithmetic: start + (other - b) len wraps back into range when other < b
         if (ls_rows_equal(CTX_ARG start + (other - b) * len, start, len) != 0) {
+            if (b < other) ATOMIC_MIN(V(ls_set_table)[at], b + 1u);  // mostly not: smaller shafts tend to come first
             V(ls_set_slot)[b] = at;
             return;
         }
         slot = slot + 1u == size ? 0u : slot + 1u;
     }
-}
-#endif
-
-#ifdef KERNEL_ls_min
-// The slot's value only falls, so a shaft that reads a value no larger than its own changes
-// nothing and takes no atomic: most do, their slot's claimer being the smallest member already.
-INLINE void ls_min_kernel(CTX_PARAM uint b) {
-    uint at = V(ls_set_slot)[b];
-    if (b + 1u < V(ls_set_table)[at]) ATOMIC_MIN(V(ls_set_table)[at], b + 1u);
 }
 #endif
 
