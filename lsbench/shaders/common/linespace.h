@@ -596,8 +596,8 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 // Step 3's facet planes: 0 separated by one of them, 1 inside all, 2 undecided. With the edges
 // test (LS_EXACT_EDGES) also 1 where a corner lies inside all of them: the triangle then meets the
 // pushed volume, and the edges test would accept it by the segments from that corner (at t = 0),
-// so the decision is the same and the pair skips the edge clipping (on Sponza 64³ N=3 most of the
-// pairs that the triangle edges decide).
+// so the decision is the same and the pair skips the edge clipping (Sponza 64³ N=3: 37.7 M of the
+// 73.5 M pairs that the triangle edges accepted).
 INLINE int ls_facet_verdict(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
     int lo = 2, hi = 0;
     float wa = -INF_F, wb = -INF_F, wc = -INF_F;
