@@ -676,7 +676,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
                         ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
-                        ls_bits_base=bits_base, ls_grouped=0)
+                        ls_bits_base=bits_base, ls_grouped=0, ls_cull_margin=cull_margin)
 
         no_groups = temp("ls_cell_groups", 4)
         cells_per_item = CELLS_PER_ITEM.get(device.backend, CELLS_PER_ITEM_DEFAULT)
@@ -717,7 +717,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
-            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, dict(bu, ls_cull_margin=cull_margin))
+            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
                 zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
@@ -774,7 +774,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
-                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, dict(bu, ls_cull_margin=cull_margin))
+                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             shaft_pass(fill, c0, c1, fill_bufs, bu)
         non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
         if cut:

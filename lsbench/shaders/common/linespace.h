@@ -1140,9 +1140,6 @@ INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
 }
 
-#endif
-
-#ifdef KERNEL_ls_insert
 INLINE uint ls_row_hash(CTX_PARAM uint start, uint len) {
     uint h = 2166136261u;  // FNV-1a over the row's words
     for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
@@ -1228,16 +1225,16 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
 #endif
 
 #if defined(KERNEL_ls_set_len) || defined(KERNEL_ls_dest)
-// The first count/fill item of shaft s (of all cells) and its cell's items per shaft.
-STRUCT(LsItems) { uint first; uint chunks; };
+// The first count/fill item of shaft s (of all cells), its cell's items per shaft, and its cell.
+STRUCT(LsItems) { uint first; uint chunks; uint cell; };
 
 INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
     uint shafts = V(ls_shafts);
-    uint cell = s / shafts;
-    uint item0 = V(ls_item_bases)[cell];
     LsItems it;
-    it.chunks = (V(ls_item_bases)[cell + 1u] - item0) / shafts;
-    it.first = item0 + (s % shafts) * it.chunks;
+    it.cell = s / shafts;
+    uint item0 = V(ls_item_bases)[it.cell];
+    it.chunks = (V(ls_item_bases)[it.cell + 1u] - item0) / shafts;
+    it.first = item0 + (s - it.cell * shafts) * it.chunks;
     return it;
 }
 #endif
@@ -1254,7 +1251,7 @@ INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft
     if ((set & LS_SET_HEAD) == 0u && it.chunks == 1u) return 0u;
     uint len = 0u;
     for (uint k = 0u; k < it.chunks; ++k) len += LS_ITEM(it.first + k);
-    if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD), len);
+    if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[it.cell] + (set & ~LS_SET_HEAD), len);
     return it.chunks > 1u && len > 0u ? 1u : 0u;
 }
 
@@ -1285,7 +1282,7 @@ INLINE void ls_dest_kernel(CTX_PARAM uint s) {
         for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, LS_SKIP);
         return;
     }
-    uint at = LS_SET_LEN(V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD));
+    uint at = LS_SET_LEN(V(ls_cell_sets)[it.cell] + (set & ~LS_SET_HEAD));
     for (uint k = 0u; k < it.chunks; ++k) {
         uint count = LS_ITEM(it.first + k);
         LS_ITEM_STORE(it.first + k, at);
