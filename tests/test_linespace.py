@@ -370,15 +370,23 @@ def test_cell_past_the_loop_budget(device):
     built.release()
 
 
+def shaft_plane_slots(device, n: int) -> np.ndarray:
+    """The device's ls_planes for N = n: (15 n^4 shafts, LS_PLANE_SLOTS, 4) floats."""
+    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
+    shafts = 15 * n**4
+    buf = device.alloc("ls_planes", 16 * linespace.LS_PLANE_SLOTS * shafts)
+    device.dispatch(linespace.LS_PLANES, shafts, {"ls_planes": buf}, linespace.uniforms(geometry, n))
+    slots = device.read(buf, np.float32).reshape(shafts, linespace.LS_PLANE_SLOTS, 4)
+    device.release(buf)
+    return slots
+
+
 def test_shaft_volumes_are_hulls_of_their_patches(device):
     """The device's facet planes: every patch corner is inside every plane, and each plane touches
     at least three corners (a real facet); after them the shaft's axis (its patches' centres) and
     the patches' mask indices."""
     n = 2
-    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
-    buf = device.alloc("ls_planes", 16 * linespace.LS_PLANE_SLOTS * 15 * n**4)
-    device.dispatch(linespace.LS_PLANES, 15 * n**4, {"ls_planes": buf}, linespace.uniforms(geometry, n))
-    slots = device.read(buf, np.float32).reshape(15 * n**4, linespace.LS_PLANE_SLOTS, 4)
+    slots = shaft_plane_slots(device, n)
     planes = slots[:, :linespace.LS_MAX_PLANES]
     s = 0
     for a, b in FACE_PAIRS:
@@ -396,7 +404,6 @@ def test_shaft_volumes_are_hulls_of_their_patches(device):
                 np.testing.assert_allclose(slots[s, 8:, :3], centres, atol=1e-6)
                 assert list(slots[s, 8:, 3]) == [a * n * n + pa, b * n * n + pb]
                 s += 1
-    device.release(buf)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
@@ -409,12 +416,7 @@ def test_cull_margin_covers_the_pushed_volumes(device, n):
     built = backends.build(device, "grid-ls", random_scene(), BuildParams((2, 2, 2), ls_n=n))
     margin = built.stats["ls_cull_margin"]
     built.release()
-    geometry = backends.geometry_for("grid-ls", random_scene(), BuildParams((2, 2, 2)))
-    shafts = 15 * n**4
-    buf = device.alloc("ls_planes", 16 * linespace.LS_PLANE_SLOTS * shafts)
-    device.dispatch(linespace.LS_PLANES, shafts, {"ls_planes": buf}, linespace.uniforms(geometry, n))
-    planes = device.read(buf, np.float32).reshape(shafts, linespace.LS_PLANE_SLOTS, 4)[:, :linespace.LS_MAX_PLANES]
-    device.release(buf)
+    planes = shaft_plane_slots(device, n)[:, :linespace.LS_MAX_PLANES]
     corner_uv = np.array([[0, 0], [0, 1], [1, 0], [1, 1.0]])
     triples = np.array([t for t in np.ndindex(8, 8, 8) if t[0] < t[1] < t[2]])
     reach = 0.0
