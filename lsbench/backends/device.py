@@ -99,7 +99,8 @@ class Device(abc.ABC):
     def read(self, buf: DeviceBuffer, dtype, count: int | None = None) -> np.ndarray: ...
 
     @abc.abstractmethod
-    def fill_zero(self, buf: DeviceBuffer) -> None: ...
+    def fill_zero(self, buf: DeviceBuffer, nbytes: int | None = None) -> None:
+        """Zero the buffer's first `nbytes` (default: all of it)."""
 
     def alloc_readable(self, name: str, nbytes: int) -> DeviceBuffer:
         """A zeroed buffer that the host reads back whole once the kernels are done (read_readable):

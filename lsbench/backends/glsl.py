@@ -161,8 +161,8 @@ class GLSLDevice(Device):
         buf.handle.read_into(out, size=size)  # one copy, not bytes and then an array of them
         return out
 
-    def fill_zero(self, buf):
-        buf.handle.clear()
+    def fill_zero(self, buf, nbytes=None):
+        buf.handle.clear(size=-1 if nbytes is None else int(nbytes))
 
     def write(self, buf, array, offset=0):
         buf.handle.write(np.ascontiguousarray(array).tobytes(), offset=int(offset))

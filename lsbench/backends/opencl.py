@@ -241,8 +241,8 @@ class OpenCLDevice(Device):
         mapped.base.release()
         return view
 
-    def fill_zero(self, buf):
-        self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes)
+    def fill_zero(self, buf, nbytes=None):
+        self.cl.enqueue_fill_buffer(self.queue, buf.handle, np.uint32(0), 0, buf.nbytes if nbytes is None else int(nbytes))
 
     def release(self, buf):
         self._live.pop(id(buf.handle), None)

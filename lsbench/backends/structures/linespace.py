@@ -41,11 +41,12 @@ batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's 
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
 (ls_head_counts_kernel, ls_shaft_set_kernel); (5) each head's set length, the sum of its items'
-counts (ls_set_len_kernel), exclusive scans of the sets per cell and of those lengths (set
-offsets), then the offsets array (ls_layout_kernel) and each head item's destination, its set's
-offset plus its shaft's earlier chunks (ls_dest_kernel; no scan over all items: all shafts' lists
-together, a stat, the count sums in 64 bits); (6) fill: only the heads' items write their candidates,
-in list order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
+counts, with the set's index left in its first item and the earlier chunks' counts in the others
+(ls_set_len_kernel; LS_SKIP in every other shaft's items), exclusive scans of the sets per cell
+and of those lengths (set offsets), then the offsets array (ls_layout_kernel; no scan over all
+items: all shafts' lists together, a stat, the count sums in 64 bits); (6) fill: only the heads'
+items write their candidates, each from its set's offset plus its shaft's earlier chunks, in list
+order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
 measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
@@ -134,6 +135,8 @@ LS_PAIR_BITS_BYTES = 256 * 2**20
 # Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the slots
 # and heads 4.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
+# Cache lines of 16 words that the count's work items spread their stats over (linespace.h).
+LS_STAT_BUCKETS = 32
 # Bits of the row hash kept (linespace.h: ls_row_hash); tests set fewer, so that different sets
 # collide and only the word-by-word compare tells them apart.
 LS_HASH_MASK = 0xFFFFFFFF
@@ -190,9 +193,12 @@ LS_COUNT = KernelSpec(
 # The fill writes the sets' candidate ids; read-write for the atomic OR of a word that two items
 # share (16-bit ids, linespace.h ls_put_candidate).
 LS_FILL_TRIS = Buf("ls_shaft_tris", "uint", "rw")
+# The scanned set lengths (each set's offset in the lists), which the fill's items add to
+# (linespace.h: ls_item_first).
+LS_FILL_SET_OFFSETS = Buf("ls_set_lens", "uint", "r")
 LS_FILL = KernelSpec(
     "ls_fill", LS_HEADERS, "ls_shaft_kernel",
-    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), LS_FILL_TRIS),
+    _PAIR_CELL_BUFFERS + _ITEM_BUFFERS + (Buf("ls_item_offsets", "uint", "r"), LS_FILL_SET_OFFSETS, LS_FILL_TRIS),
     LS_BATCH_UNIFORMS, _PAIR_DEFINES)
 # The fill from the count's pair bits binds only what it reads (llvmpipe: 16 storage buffers per
 # kernel, and both arrays may be split over 4).
@@ -200,7 +206,7 @@ LS_FILL_FROM_BITS = KernelSpec(
     "ls_fill", LS_HEADERS_NO_SCENE, "ls_shaft_kernel",
     (Buf("ls_cell_ranges", "uint", "r"), Buf("ls_ref_bases", "uint", "r"),
      Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"), LS_PAIR_BITS_FILL, Buf("ls_item_offsets", "uint", "r"),
-     LS_FILL_TRIS),
+     LS_FILL_SET_OFFSETS, LS_FILL_TRIS),
     LS_BATCH_UNIFORMS, (("LS_PAIR_BITS", "1"),))
 
 
@@ -221,13 +227,11 @@ LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "
 LS_HEAD_COUNTS = _sets_kernel("ls_head_counts", _uints("ls_set_heads:r", "ls_head_counts:w"))
 LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_head_counts:r",
                                                    "ls_shaft_sets:w"))
-# After the scans: set lengths, the offsets array, each item's destination in the sets' lists.
-LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:r", "ls_shaft_sets:r",
+# Before and after the scans: set lengths (and what the fill's items need), the offsets array.
+LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
-LS_DEST = _sets_kernel("ls_dest", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
-                                         "ls_cell_sets:r", "ls_set_lens:r"), LS_UNIFORMS)
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
 # A split offset array is scanned chunk by chunk; this adds the earlier chunks' total.
 LS_CARRY = KernelSpec(
@@ -236,7 +240,7 @@ LS_CARRY = KernelSpec(
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET,
-               LS_SET_LEN, LS_LAYOUT, LS_DEST, LS_ZERO, LS_CARRY)
+               LS_SET_LEN, LS_LAYOUT, LS_ZERO, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
@@ -631,7 +635,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         return temps[-1]
 
     def zero(buf: DeviceBuffer, words: int) -> None:
-        device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
+        if device.serial_work_items:  # PoCL: the kernel stores on every core, its fill on one (2.1 vs 4.4 ms per 32 MB)
+            device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
+        else:  # llvmpipe: the clear is a memset, the kernel a store per lane (3.9 vs 20 ms per 32 MB)
+            device.fill_zero(buf, 4 * words)
 
     try:
         planes = temp("ls_planes", 16 * LS_PLANE_SLOTS * per_cell, zero=False)
@@ -644,7 +651,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(LS_EDGES if by_edges else LS_REACH, per_cell,
                         {"ls_planes": planes, "ls_edges": edges, "ls_reach": reach}, u)
         cull_margin = max(float(device.read(reach, np.float32).max()), LS_EPS) + LS_CULL_SLACK
-        stats_buf = temp("ls_stats", 16)
+        # ls_stats: words 0 (non-empty shafts of several chunks, ls_set_len) and 1 (cut loops), then
+        # the count's LS_STAT_BUCKETS lines of 16 words (non-empty shafts, candidates low and high)
+        stats_buf = temp("ls_stats", 64 * (1 + LS_STAT_BUCKETS))
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
         temps.extend((item_bases, ref_bases))
@@ -726,10 +735,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         if all_bits:
             find_sets(0, cells.count, 0)
         # All shafts' lists together, summed in 64 bits by the count (no scan over the items: each
-        # shaft's items are summed where needed, ls_set_len and ls_dest). The sets' lists hold no
+        # shaft's items are summed where needed, ls_set_len and the fill). The sets' lists hold no
         # more, so below 2^32 - 1 no 32-bit offset of theirs can wrap.
-        low, high = (int(v) for v in device.read(stats_buf, np.uint32, 4)[2:])
-        total = low + (high << 32)
+        stat_words = device.read(stats_buf, np.uint32, 16 * (1 + LS_STAT_BUCKETS)).reshape(-1, 16).astype(np.int64)
+        total = int(stat_words[1:, 2].sum() + (stat_words[1:, 3].sum() << 32))
         if total >= UINT32_MAX:
             raise DeviceLimitError(
                 f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
@@ -762,21 +771,21 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         kept.extend(offset_bufs.values())
         device.dispatch(offsets.bind(bound(LS_LAYOUT)), offsets.entries, dict(sets_bufs, **offset_bufs),
                         batch_uniforms(0, cells.count))
-        device.dispatch(bound(LS_DEST), n_shafts, sets_bufs, u)
         candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(set_refs, id_bits))
         device.check_memory("ls_shaft_tris", 4 * candidates.entries)
         # 16-bit ids: an item's first and last word may be shared with its neighbour's, ORed in (ls_put_candidate)
         tris_bufs = candidates.alloc(device, zero=id_bits == 16)
         kept.extend(tris_bufs.values())
-        fill = candidates.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec))
-        fill_bufs = dict(cell_bufs, **item_bufs, **tris_bufs)
+        fill = candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec)))
+        fill_bufs = dict(cell_bufs, **item_bufs, **set_len_bufs, **tris_bufs)
         masks_ready = all_bits or len(plan.batches) == 1
         for c0, c1 in plan.batches:
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
                 device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             shaft_pass(fill, c0, c1, fill_bufs, bu)
-        non_empty, cut = (int(v) for v in device.read(stats_buf, np.uint32, 2))
+        first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
+        non_empty, cut = int(first_line[0] + stat_words[1:, 0].sum()), int(first_line[1])
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
                                           "triangles for one invocation")

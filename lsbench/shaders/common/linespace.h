@@ -73,8 +73,9 @@
 #define LS_SET_LEN(i) V(ls_set_lens)[i]
 #define LS_SET_LEN_STORE(i, v) V(ls_set_lens)[i] = (v)
 #endif
-// The item of a shaft that is not its set's first: the fill skips it (ls_dest_kernel).
+// The item of a shaft that is not its set's first: the fill skips it (ls_set_len_kernel).
 #define LS_SKIP 0xffffffffu
+#define LS_STAT_BUCKETS 32u  // the count's stats: words 16 (k + 1) + {0, 2, 3} of ls_stats for bucket k (linespace.py)
 #define LS_SET_HEAD 0x80000000u
 //
 // Uniforms: ls_n (N), ls_shafts (15 N^4), ls_eps (conservative margin, cell-local units).
@@ -519,7 +520,7 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 // cell into ls_cell_tris). Cell c has k_c chunks of at most ls_chunk candidates (the driver's loop
 // budget, linespace.py: candidate_chunk) and 15 N^4 k_c work items from ls_item_bases[c], shaft-
 // major: item ls_item_bases[c] + shaft * k_c + chunk. A work item walks its chunk in list order,
-// and ls_dest puts each chunk's candidates right after the previous chunk's, so the fill writes
+// and the fill puts each chunk's candidates right after the previous chunk's (ls_item_first), so it writes
 // every shaft's list in cell-list order: no atomics, deterministic, and the same lists as one item
 // per shaft. A dispatch covers the cells [ls_cell_first, ls_cell_end) of one
 // batch (item ls_item_base + gid); their patch masks (ls_masks_kernel) start at dense reference
@@ -789,6 +790,13 @@ INLINE uint ls_put_candidate(CTX_PARAM uint first, uint count, uint position, ui
 #endif
 }
 
+// Where the item's part of its set's list starts, from `left` = LS_ITEM(item): ls_set_len_kernel
+// left the set's index in its shaft's first item and in each later chunk's item the counts of the
+// chunks before it; the scan since made the set's length its offset.
+INLINE uint ls_item_first(CTX_PARAM uint item, uint chunk, uint left) {
+    return chunk == 0u ? LS_SET_LEN(left) : LS_SET_LEN(LS_ITEM(item - chunk)) + left;
+}
+
 // After an item's last entry: its last word, where the item ends mid-word.
 INLINE void ls_put_last(CTX_PARAM uint first, uint count, uint pend) {
 #ifdef LS_IDS16
@@ -855,8 +863,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
 #endif
 #if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
-        uint first = LS_ITEM(item);  // where the item's part of its set's list goes (ls_dest_kernel)
-        if (first == LS_SKIP) continue;
+        uint first = LS_ITEM(item);
+        if (first == LS_SKIP) continue;  // not its set's head (ls_set_len_kernel)
+        first = ls_item_first(CTX_ARG item, chunk, first);
         uint count = 0u;
         uint pend = 0u;
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {  // the row 32 bits at a time, its set bits in order
@@ -875,6 +884,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         uint first = LS_ITEM(item);
         if (first == LS_SKIP) continue;
+        first = ls_item_first(CTX_ARG item, chunk, first);
 #endif
         uint count = 0u;
 #ifdef KERNEL_ls_fill
@@ -933,19 +943,24 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
-        LS_ITEM_STORE(item, count);  // the count, until ls_dest makes it the item's place in its set's list
+        LS_ITEM_STORE(item, count);  // the count, until ls_set_len_kernel puts what the fill needs there
         non_empty += chunks == 1u && count > 0u ? 1u : 0u;
         sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
         sum_lo += count;
 #endif
     }
 #ifndef KERNEL_ls_fill
-    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
+    // The item's stats go to one of LS_STAT_BUCKETS cache lines, by its index (linespace.py sums
+    // them), so that the cores' atomics seldom take a line from each other (PoCL, Sponza grid-ls
+    // 64³ N=3: the count took 0.1-0.2 s less without these atomics, 0.05 s less with the buckets
+    // than with one line for all).
+    uint stat = 16u * (1u + ((gid >> 3u) & (LS_STAT_BUCKETS - 1u)));
+    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[stat], non_empty);
     if (sum_lo > 0u) {
-        uint before = ATOMIC_ADD(V(ls_stats)[2], sum_lo);
+        uint before = ATOMIC_ADD(V(ls_stats)[stat + 2u], sum_lo);
         sum_hi += before + sum_lo < before ? 1u : 0u;
     }
-    if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[3], sum_hi);
+    if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[stat + 3u], sum_hi);
 #endif
 #ifndef KERNEL_ls_fill
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
@@ -1224,7 +1239,7 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
 }
 #endif
 
-#if defined(KERNEL_ls_set_len) || defined(KERNEL_ls_dest)
+#ifdef KERNEL_ls_set_len
 // The first count/fill item of shaft s (of all cells), its cell's items per shaft, and its cell.
 STRUCT(LsItems) { uint first; uint chunks; uint cell; };
 
@@ -1237,21 +1252,31 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
     it.first = item0 + (s - it.cell * shafts) * it.chunks;
     return it;
 }
-#endif
 
-#ifdef KERNEL_ls_set_len
 // After the sets: each head writes its set's length, the sum of its items' counts (then scanned
-// into the set offsets). The count kernel counted the non-empty shafts of one-chunk cells
-// (stats); a shaft of several chunks, whose count items each saw one chunk, is counted here. So
-// the shafts that are neither a head nor of such a cell (most) read nothing more than their set
-// word (the count of all of them here took PoCL 0.36 s, Sponza 64³ N=3).
+// into the set offsets), and leaves in its items what the fill needs to find where each item's
+// part of the list goes (ls_item_first): the set's index in its first item, the counts of the
+// chunks before in each later one. Every other shaft's items get LS_SKIP. (Until the thirtieth
+// session a pass of its own after the scan, ls_dest, wrote each item's place: Sponza grid-ls
+// glsl 128³ N=2 0.88 s, opencl 64³ N=3 0.15 s.) The count kernel counted the non-empty shafts of
+// one-chunk cells (stats); a shaft of several chunks, whose count items each saw one chunk, is
+// counted here.
 INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft of several chunks
     uint set = LS_SHAFT_SET(s);
     LsItems it = ls_shaft_items(CTX_ARG s);
-    if ((set & LS_SET_HEAD) == 0u && it.chunks == 1u) return 0u;
+    bool head = (set & LS_SET_HEAD) != 0u;
+    if (!head && it.chunks == 1u) {
+        LS_ITEM_STORE(it.first, LS_SKIP);
+        return 0u;
+    }
+    uint index = V(ls_cell_sets)[it.cell] + (set & ~LS_SET_HEAD);
     uint len = 0u;
-    for (uint k = 0u; k < it.chunks; ++k) len += LS_ITEM(it.first + k);
-    if ((set & LS_SET_HEAD) != 0u) LS_SET_LEN_STORE(V(ls_cell_sets)[it.cell] + (set & ~LS_SET_HEAD), len);
+    for (uint k = 0u; k < it.chunks; ++k) {
+        uint count = LS_ITEM(it.first + k);
+        LS_ITEM_STORE(it.first + k, head ? (k == 0u ? index : len) : LS_SKIP);
+        len += count;
+    }
+    if (head) LS_SET_LEN_STORE(index, len);
     return it.chunks > 1u && len > 0u ? 1u : 0u;
 }
 
@@ -1270,25 +1295,6 @@ INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
     if (ls_set_len_of(CTX_ARG s) != 0u) ATOMIC_ADD(V(ls_stats)[0], 1u);
 }
 #endif
-#endif
-
-#ifdef KERNEL_ls_dest
-// Each item of a head gets where its part of the set's list starts (the set's offset plus the
-// counts of the shaft's chunks before it: no scan over all items); the other shafts' items LS_SKIP.
-INLINE void ls_dest_kernel(CTX_PARAM uint s) {
-    LsItems it = ls_shaft_items(CTX_ARG s);
-    uint set = LS_SHAFT_SET(s);
-    if ((set & LS_SET_HEAD) == 0u) {
-        for (uint k = 0u; k < it.chunks; ++k) LS_ITEM_STORE(it.first + k, LS_SKIP);
-        return;
-    }
-    uint at = LS_SET_LEN(V(ls_cell_sets)[it.cell] + (set & ~LS_SET_HEAD));
-    for (uint k = 0u; k < it.chunks; ++k) {
-        uint count = LS_ITEM(it.first + k);
-        LS_ITEM_STORE(it.first + k, at);
-        at += count;
-    }
-}
 #endif
 
 #ifdef KERNEL_ls_layout
