@@ -229,7 +229,8 @@ LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_head
                                                    "ls_shaft_sets:w"))
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
-                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
+                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"),
+                          LS_UNIFORMS + (Uniform("ls_one_chunk", "uint"),))
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
@@ -754,10 +755,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
         set_len = bound(_set_len_spec(device))
+        set_len_u = dict(u, ls_one_chunk=int(plan.items == n_shafts))  # every cell one chunk: item s is shaft s (linespace.h)
         if device.serial_work_items:
-            device.dispatch(set_len, n_shafts, sets_bufs, u)
+            device.dispatch(set_len, n_shafts, sets_bufs, set_len_u)
         else:
-            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
+            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(set_len_u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below

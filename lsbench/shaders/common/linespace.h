@@ -855,6 +855,10 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
     for (uint cell = cell_first; cell < cell_end; ++cell) {
         uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
+#ifdef KERNEL_ls_fill
+        uint left = LS_ITEM(item);
+        if (left == LS_SKIP) continue;  // not its set's head (ls_set_len_kernel): most shafts, before any other load
+#endif
         uint begin = V(ls_cell_ranges)[2u * cell];
         uint end = V(ls_cell_ranges)[2u * cell + 1u];
         uint first_i = begin + chunk * V(ls_chunk);
@@ -863,9 +867,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
 #endif
 #if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
-        uint first = LS_ITEM(item);
-        if (first == LS_SKIP) continue;  // not its set's head (ls_set_len_kernel)
-        first = ls_item_first(CTX_ARG item, chunk, first);
+        uint first = ls_item_first(CTX_ARG item, chunk, left);
         uint count = 0u;
         uint pend = 0u;
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {  // the row 32 bits at a time, its set bits in order
@@ -882,9 +884,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint rb = cell_ref * patches + mask_b * (end - begin) + (first_i - begin);
         uint tri_ref = cell_ref + (first_i - begin);
 #ifdef KERNEL_ls_fill
-        uint first = LS_ITEM(item);
-        if (first == LS_SKIP) continue;
-        first = ls_item_first(CTX_ARG item, chunk, first);
+        uint first = ls_item_first(CTX_ARG item, chunk, left);
 #endif
         uint count = 0u;
 #ifdef KERNEL_ls_fill
@@ -1263,8 +1263,23 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
 // counted here.
 INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft of several chunks
     uint set = LS_SHAFT_SET(s);
-    LsItems it = ls_shaft_items(CTX_ARG s);
     bool head = (set & LS_SET_HEAD) != 0u;
+#ifndef LS_NONEMPTY_STRIDE
+    // Every cell one chunk: shaft s's item is s, no lookup of its cell's items (PoCL, Sponza grid-ls
+    // 64³ N=3: this kernel 0.15 -> 0.07 s). Where the lanes run in step (LS_NONEMPTY_STRIDE) the
+    // branch made llvmpipe's kernel slower even where it is not taken (0.74-0.80 -> 1.0-1.1 s).
+    if (V(ls_one_chunk) != 0u) {
+        if (!head) {
+            LS_ITEM_STORE(s, LS_SKIP);
+            return 0u;
+        }
+        uint index = V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD);
+        LS_SET_LEN_STORE(index, LS_ITEM(s));
+        LS_ITEM_STORE(s, index);
+        return 0u;
+    }
+#endif
+    LsItems it = ls_shaft_items(CTX_ARG s);
     if (!head && it.chunks == 1u) {
         LS_ITEM_STORE(it.first, LS_SKIP);
         return 0u;
