@@ -229,8 +229,7 @@ LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_head
                                                    "ls_shaft_sets:w"))
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
-                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"),
-                          LS_UNIFORMS + (Uniform("ls_one_chunk", "uint"),))
+                                               "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
@@ -401,12 +400,14 @@ def _cull_runs(spec: KernelSpec) -> KernelSpec:
     return dataclasses.replace(spec, buffers=buffers).with_defines(LS_CULL_RUNS=1, LS_RUN_LANES=f"{LS_RUN_LANES}u")
 
 
-def _set_len_spec(device: Device) -> KernelSpec:
+def _set_len_spec(device: Device, one_chunk: bool) -> KernelSpec:
     """ls_set_len as this device runs it: an item per shaft (work items one after the other) or
-    LS_NONEMPTY_STRIDE shafts at a stride per item (SIMD lanes: one atomic for their non-empty ones)."""
+    LS_NONEMPTY_STRIDE shafts at a stride per item (SIMD lanes: one atomic for their non-empty ones);
+    where every cell is one chunk, shaft s's item is s (LS_ONE_CHUNK: no lookup of the cell's items)."""
+    spec = LS_SET_LEN.with_defines(LS_ONE_CHUNK=1) if one_chunk else LS_SET_LEN
     if device.serial_work_items:
-        return LS_SET_LEN
-    strided = dataclasses.replace(LS_SET_LEN, uniforms=LS_SET_LEN.uniforms + (Uniform("ls_shaft_total", "uint"),))
+        return spec
+    strided = dataclasses.replace(spec, uniforms=spec.uniforms + (Uniform("ls_shaft_total", "uint"),))
     return strided.with_defines(LS_NONEMPTY_STRIDE=f"{LS_NONEMPTY_STRIDE}u")
 
 
@@ -415,7 +416,8 @@ def prepare(device: Device) -> None:
     that no compile falls inside the timed build."""
     for spec in BUILD_SPECS:
         device.compile(_with_test(device, spec))
-    device.compile(_set_len_spec(device))
+    for one_chunk in (True, False):
+        device.compile(_set_len_spec(device, one_chunk))
     for fill_from_bits in (True, False):
         count, fill = _count_fill_specs(device, fill_from_bits)
         for spec in (count, fill, fill.with_defines(LS_IDS16=1)):
@@ -754,12 +756,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def bound(spec: KernelSpec) -> KernelSpec:
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
-        set_len = bound(_set_len_spec(device))
-        set_len_u = dict(u, ls_one_chunk=int(plan.items == n_shafts))  # every cell one chunk: item s is shaft s (linespace.h)
+        set_len = bound(_set_len_spec(device, one_chunk=plan.items == n_shafts))
         if device.serial_work_items:
-            device.dispatch(set_len, n_shafts, sets_bufs, set_len_u)
+            device.dispatch(set_len, n_shafts, sets_bufs, u)
         else:
-            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(set_len_u, ls_shaft_total=n_shafts))
+            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below

@@ -1264,21 +1264,18 @@ INLINE LsItems ls_shaft_items(CTX_PARAM uint s) {
 INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft of several chunks
     uint set = LS_SHAFT_SET(s);
     bool head = (set & LS_SET_HEAD) != 0u;
-#ifndef LS_NONEMPTY_STRIDE
-    // Every cell one chunk: shaft s's item is s, no lookup of its cell's items (PoCL, Sponza grid-ls
-    // 64³ N=3: this kernel 0.15 -> 0.07 s). Where the lanes run in step (LS_NONEMPTY_STRIDE) the
-    // branch made llvmpipe's kernel slower even where it is not taken (0.74-0.80 -> 1.0-1.1 s).
-    if (V(ls_one_chunk) != 0u) {
-        if (!head) {
-            LS_ITEM_STORE(s, LS_SKIP);
-            return 0u;
-        }
-        uint index = V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD);
-        LS_SET_LEN_STORE(index, LS_ITEM(s));
-        LS_ITEM_STORE(s, index);
+#ifdef LS_ONE_CHUNK
+    // Every cell one chunk (the variant linespace.py compiles for such builds): shaft s's item is s,
+    // no lookup of its cell's items.
+    if (!head) {
+        LS_ITEM_STORE(s, LS_SKIP);
         return 0u;
     }
-#endif
+    uint index = V(ls_cell_sets)[s / V(ls_shafts)] + (set & ~LS_SET_HEAD);
+    LS_SET_LEN_STORE(index, LS_ITEM(s));
+    LS_ITEM_STORE(s, index);
+    return 0u;
+#else
     LsItems it = ls_shaft_items(CTX_ARG s);
     if (!head && it.chunks == 1u) {
         LS_ITEM_STORE(it.first, LS_SKIP);
@@ -1293,6 +1290,7 @@ INLINE uint ls_set_len_of(CTX_PARAM uint s) {  // 1 where s is a non-empty shaft
     }
     if (head) LS_SET_LEN_STORE(index, len);
     return it.chunks > 1u && len > 0u ? 1u : 0u;
+#endif
 }
 
 #ifdef LS_NONEMPTY_STRIDE
