@@ -40,13 +40,16 @@ item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cel
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
-(ls_head_counts_kernel, ls_shaft_set_kernel); (5) each head's set length, the sum of its items'
-counts, with the set's index left in its first item and the earlier chunks' counts in the others
-(ls_set_len_kernel; LS_SKIP in every other shaft's items), exclusive scans of the sets per cell
-and of those lengths (set offsets), then the offsets array (ls_layout_kernel; no scan over all
-items: all shafts' lists together, a stat, the count sums in 64 bits); (6) fill: only the heads'
-items write their candidates, each from its set's offset plus its shaft's earlier chunks, in list
-order (from the bits, or testing again where not all bits fit). docs/linespace-build.md
+(ls_head_counts_kernel, ls_shaft_set_kernel), and where every cell is one chunk and all cells'
+bits are kept (most builds), each group's heads listed in shaft order; (5) each head's set length,
+the sum of its items' counts (over the head lists: ls_head_len_kernel; else over every shaft,
+with the set's index left in a head's first item, the earlier chunks' counts in the others and
+LS_SKIP in every other shaft's items: ls_set_len_kernel), exclusive scans of the sets per cell and
+of those lengths (set offsets), then the offsets array (ls_layout_kernel; no scan over all items:
+all shafts' lists together, a stat, the count sums in 64 bits); (6) fill: only the heads write
+their candidates, each from its set's offset (plus its shaft's earlier chunks), in list order
+(over the head lists from the bits: ls_head_fill_kernel; else every item from the bits, or
+testing again where not all bits fit). docs/linespace-build.md
 measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
@@ -230,6 +233,15 @@ LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_head
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
+# Where every cell is one chunk and all cells' pair bits are kept: each group's heads listed in
+# shaft order (ls_shaft_set), and the set lengths and the fill over those lists only (linespace.h:
+# ls_head_len_kernel, ls_head_fill_kernel), not over every shaft and item.
+LS_SHAFT_SET_LIST = dataclasses.replace(
+    LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _uints("ls_head_list:w")).with_defines(LS_HEAD_LIST=1)
+_HEAD_UNIFORMS = LS_UNIFORMS + (Uniform("ls_head_base", "uint"),)
+LS_HEAD_LEN = _sets_kernel("ls_head_len", _uints("ls_head_list:r", "ls_item_offsets:r", "ls_set_lens:w"), _HEAD_UNIFORMS)
+LS_HEAD_FILL = _sets_kernel("ls_head_fill", _uints("ls_head_list:r", "ls_cell_ranges:r", "ls_ref_bases:r")
+                            + (LS_PAIR_BITS_FILL, LS_FILL_SET_OFFSETS, LS_FILL_TRIS), _HEAD_UNIFORMS)
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
@@ -239,7 +251,7 @@ LS_CARRY = KernelSpec(
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
-               LS_SHAFT_SET,
+               LS_SHAFT_SET, LS_SHAFT_SET_LIST, LS_HEAD_LEN, LS_HEAD_FILL, LS_HEAD_FILL.with_defines(LS_IDS16=1),
                LS_SET_LEN, LS_LAYOUT, LS_ZERO, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
@@ -683,7 +695,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, **shaft_set_bufs)
         insert_spec = LS_INSERT if LS_HASH_MASK == 0xFFFFFFFF else LS_INSERT.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
-        shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET)
+        # One-chunk builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill)
+        head_lists: list[tuple[DeviceBuffer, int, int]] = [] if plan.items == n_shafts and all_bits else None
+        shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET)
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
@@ -721,8 +735,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 for spec in (insert_spec, LS_HEADS):
                     device.dispatch(spec, shafts, group_bufs, bu)
                 device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
-                device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word
-                device.dispatch(shaft_set_spec, shafts, group_bufs, bu)
+                heads = device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word
+                if head_lists is None:
+                    device.dispatch(shaft_set_spec, shafts, group_bufs, bu)
+                    continue
+                base = sum(h for _, _, h in head_lists)
+                head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
+                device.dispatch(shaft_set_spec, shafts, dict(group_bufs, ls_head_list=head_lists[-1][0]), bu)
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits)
         count = items.bind(count_spec)
@@ -756,11 +775,19 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def bound(spec: KernelSpec) -> KernelSpec:
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
-        set_len = bound(_set_len_spec(device, one_chunk=plan.items == n_shafts))
-        if device.serial_work_items:
-            device.dispatch(set_len, n_shafts, sets_bufs, u)
+        if head_lists is not None:
+            if sum(h for _, _, h in head_lists) != n_sets:
+                raise RuntimeError(f"Line Space build: the groups' heads ({sum(h for _, _, h in head_lists)}) "
+                                   f"differ from the cells' sets ({n_sets})")
+            head_len = set_lens.bind(items.bind(LS_HEAD_LEN))
+            for head_list, base, heads in head_lists:
+                device.dispatch(head_len, heads, dict(sets_bufs, ls_head_list=head_list), dict(u, ls_head_base=base))
         else:
-            device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
+            set_len = bound(_set_len_spec(device, one_chunk=plan.items == n_shafts))
+            if device.serial_work_items:
+                device.dispatch(set_len, n_shafts, sets_bufs, u)
+            else:
+                device.dispatch(set_len, -(-n_shafts // LS_NONEMPTY_STRIDE), sets_bufs, dict(u, ls_shaft_total=n_shafts))
         set_refs = _scan_split(device, set_lens, set_len_bufs, u)  # lengths -> offsets into the lists
         offset_count = offset_entries(cells.count, n, n_sets)
         if budget_bytes is not None:  # the two arrays' bytes, as allocated below
@@ -781,8 +808,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         kept.extend(tris_bufs.values())
         fill = candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec)))
         fill_bufs = dict(cell_bufs, **item_bufs, **set_len_bufs, **tris_bufs)
+        if head_lists is not None:
+            head_fill = candidates.bind(set_lens.bind(LS_HEAD_FILL.with_defines(LS_IDS16=1) if id_bits == 16 else LS_HEAD_FILL))
+            for head_list, base, heads in head_lists:
+                device.dispatch(head_fill, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs, **tris_bufs),
+                                dict(u, ls_head_base=base))
         masks_ready = all_bits or len(plan.batches) == 1
-        for c0, c1 in plan.batches:
+        for c0, c1 in ([] if head_lists is not None else plan.batches):
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
             if not masks_ready:
                 device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)

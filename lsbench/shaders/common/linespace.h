@@ -738,7 +738,7 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
-#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS))
+#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_fill)
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
 // Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
@@ -752,22 +752,7 @@ INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
 }
 #endif
 
-#if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
-// With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
-// cell c's bits start at (ls_ref_bases[c] - ls_bits_base) * 15 N^4, shaft-major: the bits of all
-// cells, or of one batch where they do not all fit), the sets are found from them (ls_insert_kernel
-// below) and the fill only reads them. Either fill writes only each set's first shaft: the other
-// shafts' items hold LS_SKIP.
-//
-// Where every cell of the batch is one chunk (ls_grouped = 1), a work item takes one shaft of a
-// group of consecutive cells (gid / shafts: the group, [ls_cell_groups[g], ls_cell_groups[g + 1]);
-// gid % shafts: the shaft) and walks them in turn, so that the shaft's set-up (its 10 plane slots,
-// the division) is paid once per group; neighbouring lanes take neighbouring shafts of the same
-// cells, so their cell loops run in step. The host makes the groups (linespace.py:
-// BuildPlan.cell_groups): at most CELLS_PER_ITEM cells (16; 256 on GL) whose candidates fit one
-// chunk. Otherwise (ls_grouped = 0) a work item is one chunk of one cell, found by a search over
-// the cells.
-#ifdef KERNEL_ls_fill
+#if defined(KERNEL_ls_fill) || defined(KERNEL_ls_head_fill)
 // The fill's entry `count` of an item whose part of its set starts at entry `first`: the
 // `position` of the candidate in its cell's list (cell-local ids, layout above). With LS_IDS16 two
 // entries share a word: `pend` gathers the word's low half until its high half comes; a word the
@@ -790,13 +775,6 @@ INLINE uint ls_put_candidate(CTX_PARAM uint first, uint count, uint position, ui
 #endif
 }
 
-// Where the item's part of its set's list starts, from `left` = LS_ITEM(item): ls_set_len_kernel
-// left the set's index in its shaft's first item and in each later chunk's item the counts of the
-// chunks before it; the scan since made the set's length its offset.
-INLINE uint ls_item_first(CTX_PARAM uint item, uint chunk, uint left) {
-    return chunk == 0u ? LS_SET_LEN(left) : LS_SET_LEN(LS_ITEM(item - chunk)) + left;
-}
-
 // After an item's last entry: its last word, where the item ends mid-word.
 INLINE void ls_put_last(CTX_PARAM uint first, uint count, uint pend) {
 #ifdef LS_IDS16
@@ -804,6 +782,30 @@ INLINE void ls_put_last(CTX_PARAM uint first, uint count, uint pend) {
         LS_CANDIDATE_OR((first + count) >> 1u, pend);
     }
 #endif
+}
+#endif
+
+#if defined(KERNEL_ls_count) || defined(KERNEL_ls_fill)
+// With LS_PAIR_BITS the count keeps every decision in ls_pair_bits (one bit per (shaft, candidate):
+// cell c's bits start at (ls_ref_bases[c] - ls_bits_base) * 15 N^4, shaft-major: the bits of all
+// cells, or of one batch where they do not all fit), the sets are found from them (ls_insert_kernel
+// below) and the fill only reads them. Either fill writes only each set's first shaft: the other
+// shafts' items hold LS_SKIP.
+//
+// Where every cell of the batch is one chunk (ls_grouped = 1), a work item takes one shaft of a
+// group of consecutive cells (gid / shafts: the group, [ls_cell_groups[g], ls_cell_groups[g + 1]);
+// gid % shafts: the shaft) and walks them in turn, so that the shaft's set-up (its 10 plane slots,
+// the division) is paid once per group; neighbouring lanes take neighbouring shafts of the same
+// cells, so their cell loops run in step. The host makes the groups (linespace.py:
+// BuildPlan.cell_groups): at most CELLS_PER_ITEM cells (16; 256 on GL) whose candidates fit one
+// chunk. Otherwise (ls_grouped = 0) a work item is one chunk of one cell, found by a search over
+// the cells.
+#ifdef KERNEL_ls_fill
+// Where the item's part of its set's list starts, from `left` = LS_ITEM(item): ls_set_len_kernel
+// left the set's index in its shaft's first item and in each later chunk's item the counts of the
+// chunks before it; the scan since made the set's length its offset.
+INLINE uint ls_item_first(CTX_PARAM uint item, uint chunk, uint left) {
+    return chunk == 0u ? LS_SET_LEN(left) : LS_SET_LEN(LS_ITEM(item - chunk)) + left;
 }
 #endif
 
@@ -1236,6 +1238,46 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
     uint head = V(ls_set_slot)[b];
     uint index = ls_heads_before(CTX_ARG head) - ls_heads_before(CTX_ARG b - b % shafts);  // group shafts of one cell are aligned
     LS_SHAFT_SET_STORE(V(ls_cell_first) * shafts + b, index | (head == b ? LS_SET_HEAD : 0u));
+#ifdef LS_HEAD_LIST
+    // The group's heads in shaft order, so that the set lengths and the fill visit only them (a
+    // head's rank among all heads is its set's global index: cells in order, a cell's sets in the
+    // order of their heads).
+    if (head == b) V(ls_head_list)[ls_heads_before(CTX_ARG b)] = V(ls_cell_first) * shafts + b;
+#endif
+}
+#endif
+
+#ifdef KERNEL_ls_head_len
+// Where every cell is one chunk and all cells' pair bits are kept (linespace.py): set
+// V(ls_head_base) + i is the set of head shaft ls_head_list[i], whose item is the shaft itself, and
+// its length that item's count. Only the heads are visited (Sponza grid-ls 128³ N=2: 2.9 M of 74.8 M
+// shafts), where ls_set_len_kernel reads every shaft's set word and marks its items.
+INLINE void ls_head_len_kernel(CTX_PARAM uint i) {
+    LS_SET_LEN_STORE(V(ls_head_base) + i, LS_ITEM(V(ls_head_list)[i]));
+}
+#endif
+
+#ifdef KERNEL_ls_head_fill
+// The fill of those builds: head shaft ls_head_list[i] writes its row's candidates (the count's pair
+// bits, list order) from its set's offset (the scanned lengths), as ls_shaft_kernel's fill from the
+// bits does for an item, without visiting the other shafts' items.
+INLINE void ls_head_fill_kernel(CTX_PARAM uint i) {
+    uint shafts = V(ls_shafts);
+    uint s = V(ls_head_list)[i];
+    uint cell = s / shafts;
+    uint begin = V(ls_cell_ranges)[2u * cell];
+    uint len = V(ls_cell_ranges)[2u * cell + 1u] - begin;
+    uint bit = V(ls_ref_bases)[cell] * shafts + (s - cell * shafts) * len;  // all cells' bits (ls_bits_base 0)
+    uint first = LS_SET_LEN(V(ls_head_base) + i);
+    uint count = 0u;
+    uint pend = 0u;
+    for (uint k0 = 0u; k0 < len; k0 += 32u) {
+        for (uint w = ls_row_word(CTX_ARG bit, len, k0 >> 5u); w != 0u; w &= w - 1u) {
+            pend = ls_put_candidate(CTX_ARG first, count, k0 + LOWEST_BIT(w), pend);
+            count += 1u;
+        }
+    }
+    ls_put_last(CTX_ARG first, count, pend);
 }
 #endif
 
