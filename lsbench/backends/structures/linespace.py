@@ -241,7 +241,8 @@ LS_SHAFT_SET_LIST = dataclasses.replace(
 _HEAD_UNIFORMS = LS_UNIFORMS + (Uniform("ls_head_base", "uint"),)
 LS_HEAD_LEN = _sets_kernel("ls_head_len", _uints("ls_head_list:r", "ls_item_offsets:r", "ls_set_lens:w"), _HEAD_UNIFORMS)
 LS_HEAD_FILL = _sets_kernel("ls_head_fill", _uints("ls_head_list:r", "ls_cell_ranges:r", "ls_ref_bases:r")
-                            + (LS_PAIR_BITS_FILL, LS_FILL_SET_OFFSETS, LS_FILL_TRIS), _HEAD_UNIFORMS)
+                            + (LS_PAIR_BITS_FILL, LS_FILL_SET_OFFSETS, LS_FILL_TRIS),
+                            _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
 LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
@@ -739,7 +740,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 if head_lists is None:
                     device.dispatch(shaft_set_spec, shafts, group_bufs, bu)
                     continue
-                base = sum(h for _, _, h in head_lists)
+                base = head_lists[-1][1] + head_lists[-1][2] if head_lists else 0  # heads of the groups before
                 head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
                 device.dispatch(shaft_set_spec, shafts, dict(group_bufs, ls_head_list=head_lists[-1][0]), bu)
 
@@ -776,9 +777,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             return set_lens.bind(shaft_sets.bind(items.bind(spec)))
 
         if head_lists is not None:
-            if sum(h for _, _, h in head_lists) != n_sets:
-                raise RuntimeError(f"Line Space build: the groups' heads ({sum(h for _, _, h in head_lists)}) "
-                                   f"differ from the cells' sets ({n_sets})")
+            listed = sum(h for _, _, h in head_lists)
+            if listed != n_sets:
+                raise RuntimeError(f"Line Space build: the groups' heads ({listed}) differ from the cells' sets ({n_sets})")
             head_len = set_lens.bind(items.bind(LS_HEAD_LEN))
             for head_list, base, heads in head_lists:
                 device.dispatch(head_len, heads, dict(sets_bufs, ls_head_list=head_list), dict(u, ls_head_base=base))
@@ -812,7 +813,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             head_fill = candidates.bind(set_lens.bind(LS_HEAD_FILL.with_defines(LS_IDS16=1) if id_bits == 16 else LS_HEAD_FILL))
             for head_list, base, heads in head_lists:
                 device.dispatch(head_fill, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs, **tris_bufs),
-                                dict(u, ls_head_base=base))
+                                dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
         masks_ready = all_bits or len(plan.batches) == 1
         for c0, c1 in ([] if head_lists is not None else plan.batches):
             bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))

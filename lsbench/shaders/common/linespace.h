@@ -738,6 +738,13 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
+#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_fill)
+// Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
+INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
+    return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
+}
+#endif
+
 #if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_fill)
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
@@ -782,6 +789,22 @@ INLINE void ls_put_last(CTX_PARAM uint first, uint count, uint pend) {
         LS_CANDIDATE_OR((first + count) >> 1u, pend);
     }
 #endif
+}
+#endif
+
+#if (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_fill)
+// The fill from the count's pair bits: the row of `len` bits from bit `bit`, 32 at a time, its
+// set bits in order as entries from `first` (positions position0 + k in the cell's list).
+INLINE void ls_fill_row(CTX_PARAM uint bit, uint len, uint first, uint position0) {
+    uint count = 0u;
+    uint pend = 0u;
+    for (uint k0 = 0u; k0 < len; k0 += 32u) {
+        for (uint w = ls_row_word(CTX_ARG bit, len, k0 >> 5u); w != 0u; w &= w - 1u) {
+            pend = ls_put_candidate(CTX_ARG first, count, position0 + k0 + LOWEST_BIT(w), pend);
+            count += 1u;
+        }
+    }
+    ls_put_last(CTX_ARG first, count, pend);
 }
 #endif
 
@@ -866,18 +889,10 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint first_i = begin + chunk * V(ls_chunk);
         uint end_i = end - first_i > V(ls_chunk) ? first_i + V(ls_chunk) : end;
 #ifdef LS_PAIR_BITS
-        uint bit = (V(ls_ref_bases)[cell] - V(ls_bits_base)) * shafts + shaft * (end - begin) + (first_i - begin);
+        uint bit = ls_row_start(CTX_ARG cell, shaft, end - begin) + (first_i - begin);
 #endif
 #if defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)
-        uint first = ls_item_first(CTX_ARG item, chunk, left);
-        uint count = 0u;
-        uint pend = 0u;
-        for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {  // the row 32 bits at a time, its set bits in order
-            for (uint w = ls_row_word(CTX_ARG bit, end_i - first_i, k0 >> 5u); w != 0u; w &= w - 1u) {
-                pend = ls_put_candidate(CTX_ARG first, count, first_i + k0 + LOWEST_BIT(w) - begin, pend);
-                count += 1u;
-            }
-        }
+        ls_fill_row(CTX_ARG bit, end_i - first_i, ls_item_first(CTX_ARG item, chunk, left), first_i - begin);
 #else
         uint cell_ref = V(ls_ref_bases)[cell] - V(ls_ref_base);  // the cell's first reference in the batch
         // first_i's masks of the shaft's two patches (the cell's block, patch-major: ls_masks_kernel)
@@ -941,7 +956,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
         }
 #endif
-#endif
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
@@ -949,6 +963,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         non_empty += chunks == 1u && count > 0u ? 1u : 0u;
         sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
         sum_lo += count;
+#endif
 #endif
     }
 #ifndef KERNEL_ls_fill
@@ -1152,11 +1167,6 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 // minimum afterwards). (2) ls_heads: that member is the set's first shaft (its "head"); (3)
 // ls_shaft_set: a shaft's set index within its cell = the heads before its head, so sets are
 // numbered in the order of their first shaft.
-// Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
-INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
-    return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
-}
-
 INLINE uint ls_row_hash(CTX_PARAM uint start, uint len) {
     uint h = 2166136261u;  // FNV-1a over the row's words
     for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
@@ -1265,19 +1275,8 @@ INLINE void ls_head_fill_kernel(CTX_PARAM uint i) {
     uint shafts = V(ls_shafts);
     uint s = V(ls_head_list)[i];
     uint cell = s / shafts;
-    uint begin = V(ls_cell_ranges)[2u * cell];
-    uint len = V(ls_cell_ranges)[2u * cell + 1u] - begin;
-    uint bit = V(ls_ref_bases)[cell] * shafts + (s - cell * shafts) * len;  // all cells' bits (ls_bits_base 0)
-    uint first = LS_SET_LEN(V(ls_head_base) + i);
-    uint count = 0u;
-    uint pend = 0u;
-    for (uint k0 = 0u; k0 < len; k0 += 32u) {
-        for (uint w = ls_row_word(CTX_ARG bit, len, k0 >> 5u); w != 0u; w &= w - 1u) {
-            pend = ls_put_candidate(CTX_ARG first, count, k0 + LOWEST_BIT(w), pend);
-            count += 1u;
-        }
-    }
-    ls_put_last(CTX_ARG first, count, pend);
+    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    ls_fill_row(CTX_ARG ls_row_start(CTX_ARG cell, s - cell * shafts, len), len, LS_SET_LEN(V(ls_head_base) + i), 0u);
 }
 #endif
 
