@@ -36,13 +36,13 @@ patches' masks as two runs), and each reference's triangle in cell-local coordin
 driver's loop budget), taken by a work item each, or where every cell of a batch is one chunk, a
 work item per shaft of a group of up to CELLS_PER_ITEM cells (BuildPlan.cell_groups), decides each candidate, from the masks where they know the answer, else
 by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
-item's offset goes and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
+item's offset goes (not in the head lists' builds below: a head's row holds it) and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
 (ls_head_counts_kernel, ls_shaft_set_kernel), and where every cell is one chunk and all cells'
 bits are kept (most builds), each group's heads listed in shaft order; (5) each head's set length,
-the sum of its items' counts (over the head lists: ls_head_len_kernel; else over every shaft,
+the sum of its items' counts (over the head lists, its row's bits: ls_head_len_kernel; else over every shaft,
 with the set's index left in a head's first item, the earlier chunks' counts in the others and
 LS_SKIP in every other shaft's items: ls_set_len_kernel), exclusive scans of the sets per cell and
 of those lengths (set offsets), then the offsets array (ls_layout_kernel; no scan over all items:
@@ -239,13 +239,13 @@ LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offse
 LS_SHAFT_SET_LIST = dataclasses.replace(
     LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _uints("ls_head_list:w")).with_defines(LS_HEAD_LIST=1)
 _HEAD_UNIFORMS = LS_UNIFORMS + (Uniform("ls_head_base", "uint"),)
-LS_HEAD_LEN = _sets_kernel("ls_head_len", _uints("ls_head_list:r", "ls_item_offsets:r", "ls_set_lens:w"), _HEAD_UNIFORMS)
+LS_HEAD_LEN = _sets_kernel("ls_head_len", _ROW_BUFFERS + _uints("ls_head_list:r", "ls_set_lens:w"),
+                          _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
 LS_HEAD_FILL = _sets_kernel("ls_head_fill", _uints("ls_head_list:r", "ls_cell_ranges:r", "ls_ref_bases:r")
                             + (LS_PAIR_BITS_FILL, LS_FILL_SET_OFFSETS, LS_FILL_TRIS),
                             _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
-LS_ZERO = _sets_kernel("ls_zero", _uints("ls_zero:w"), LS_UNIFORMS)
 # A split offset array is scanned chunk by chunk; this adds the earlier chunks' total.
 LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
@@ -253,7 +253,7 @@ LS_CARRY = KernelSpec(
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET, LS_SHAFT_SET_LIST, LS_HEAD_LEN, LS_HEAD_FILL, LS_HEAD_FILL.with_defines(LS_IDS16=1),
-               LS_SET_LEN, LS_LAYOUT, LS_ZERO, LS_CARRY)
+               LS_SET_LEN, LS_LAYOUT, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
@@ -394,11 +394,16 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
     return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
 
 
-def _count_fill_specs(device: Device, fill_from_bits: bool) -> tuple[KernelSpec, KernelSpec]:
+def _count_fill_specs(device: Device, fill_from_bits: bool, item_counts: bool = True) -> tuple[KernelSpec, KernelSpec]:
     """The count (always keeping its decisions as pair bits: the sets are found from them) and
-    the fill: from the bits where those of all cells fit, else testing the pairs again."""
+    the fill: from the bits where those of all cells fit, else testing the pairs again. Without
+    `item_counts` (the head lists' builds: ls_head_len counts a head's row) the count writes no
+    count per item and binds no ls_item_offsets."""
     count = _with_test(device, LS_COUNT)
-    count = dataclasses.replace(count, buffers=count.buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
+    buffers = count.buffers if item_counts else tuple(b for b in count.buffers if b.name != "ls_item_offsets")
+    count = dataclasses.replace(count, buffers=buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
+    if not item_counts:
+        count = count.with_defines(LS_NO_ITEM_COUNTS=1)
     fill = LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL)
     if device.serial_work_items:  # each step of the pair test a vector loop of its own (linespace.h: ls_run_meets)
         count, fill = _cull_runs(count), _cull_runs(fill)  # (the fill from pair bits tests nothing)
@@ -435,6 +440,7 @@ def prepare(device: Device) -> None:
         count, fill = _count_fill_specs(device, fill_from_bits)
         for spec in (count, fill, fill.with_defines(LS_IDS16=1)):
             device.compile(spec)
+    device.compile(_count_fill_specs(device, True, item_counts=False)[0])
 
 
 def check_min_candidates(k: int) -> int:
@@ -650,12 +656,6 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.append(device.alloc(name, max(int(nbytes), 4), zero=zero))
         return temps[-1]
 
-    def zero(buf: DeviceBuffer, words: int) -> None:
-        if device.serial_work_items:  # PoCL: the kernel stores on every core, its fill on one (2.1 vs 4.4 ms per 32 MB)
-            device.dispatch(LS_ZERO, words, {"ls_zero": buf}, u)
-        else:  # llvmpipe: the clear is a memset, the kernel a store per lane (3.9 vs 20 ms per 32 MB)
-            device.fill_zero(buf, 4 * words)
-
     try:
         planes = temp("ls_planes", 16 * LS_PLANE_SLOTS * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
@@ -681,10 +681,15 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
                          ls_local_tris=local_tris, ls_pair_bits=bits)
-        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items)
-        device.check_memory("ls_item_offsets", 4 * plan.items)
-        item_bufs = items.alloc(device, zero=True)
-        temps.extend(item_bufs.values())
+        # One-chunk builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill),
+        # and no count per item (the heads' rows hold their counts)
+        by_heads = plan.items == n_shafts and all_bits
+        items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items if not by_heads else 1)
+        item_bufs = {}
+        if not by_heads:
+            device.check_memory("ls_item_offsets", 4 * plan.items)
+            item_bufs = items.alloc(device, zero=True)
+            temps.extend(item_bufs.values())
         shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", n_shafts)
         shaft_set_bufs = shaft_sets.alloc(device, zero=False)
         temps.extend(shaft_set_bufs.values())
@@ -696,8 +701,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, **shaft_set_bufs)
         insert_spec = LS_INSERT if LS_HASH_MASK == 0xFFFFFFFF else LS_INSERT.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
-        # One-chunk builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill)
-        head_lists: list[tuple[DeviceBuffer, int, int]] = [] if plan.items == n_shafts and all_bits else None
+        head_lists: list[tuple[DeviceBuffer, int, int]] = [] if by_heads else None
         shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET)
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
@@ -729,9 +733,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             for g0 in range(c0, c1, group_cells):
                 g1 = min(g0 + group_cells, c1)
                 shafts = (g1 - g0) * per_cell
-                zero(group_bufs["ls_set_table"], 2 * shafts)
+                device.fill_zero(group_bufs["ls_set_table"], 8 * shafts)
                 words = -(-shafts // 32)
-                zero(group_bufs["ls_set_heads"], words)
+                device.fill_zero(group_bufs["ls_set_heads"], 4 * words)
                 bu = batch_uniforms(g0, g1, bits_base)
                 for spec in (insert_spec, LS_HEADS):
                     device.dispatch(spec, shafts, group_bufs, bu)
@@ -744,14 +748,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
                 device.dispatch(shaft_set_spec, shafts, dict(group_bufs, ls_head_list=head_lists[-1][0]), bu)
 
-        count_spec, fill_spec = _count_fill_specs(device, all_bits)
-        count = items.bind(count_spec)
+        count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads)
+        count = count_spec if by_heads else items.bind(count_spec)
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
             device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
-                zero(bits, -(-plan.batch_refs(c0, c1) * per_cell // 32))
+                device.fill_zero(bits, 4 * -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
             if not all_bits:  # this batch's sets, while its bits are there
                 find_sets(c0, c1, bits_base)
@@ -780,9 +784,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             listed = sum(h for _, _, h in head_lists)
             if listed != n_sets:
                 raise RuntimeError(f"Line Space build: the groups' heads ({listed}) differ from the cells' sets ({n_sets})")
-            head_len = set_lens.bind(items.bind(LS_HEAD_LEN))
+            head_len = set_lens.bind(LS_HEAD_LEN)
             for head_list, base, heads in head_lists:
-                device.dispatch(head_len, heads, dict(sets_bufs, ls_head_list=head_list), dict(u, ls_head_base=base))
+                device.dispatch(head_len, heads, dict(group_bufs, ls_head_list=head_list, **set_len_bufs),
+                                dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
         else:
             set_len = bound(_set_len_spec(device, one_chunk=plan.items == n_shafts))
             if device.serial_work_items:

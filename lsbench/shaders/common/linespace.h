@@ -738,14 +738,15 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
-#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_fill)
+#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill)
 // Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
 INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
 }
 #endif
 
-#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_fill)
+#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_len) \
+    || defined(KERNEL_ls_head_fill)
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
 // Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
@@ -959,7 +960,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
+#ifndef LS_NO_ITEM_COUNTS
         LS_ITEM_STORE(item, count);  // the count, until ls_set_len_kernel puts what the fill needs there
+#endif
         non_empty += chunks == 1u && count > 0u ? 1u : 0u;
         sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
         sum_lo += count;
@@ -1259,11 +1262,20 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
 
 #ifdef KERNEL_ls_head_len
 // Where every cell is one chunk and all cells' pair bits are kept (linespace.py): set
-// V(ls_head_base) + i is the set of head shaft ls_head_list[i], whose item is the shaft itself, and
-// its length that item's count. Only the heads are visited (Sponza grid-ls 128³ N=2: 2.9 M of 74.8 M
-// shafts), where ls_set_len_kernel reads every shaft's set word and marks its items.
+// V(ls_head_base) + i is the set of head shaft ls_head_list[i], and its length the set bits of the
+// head's row. Only the heads are visited (Sponza grid-ls 128³ N=2: 2.9 M of 74.8 M shafts), where
+// ls_set_len_kernel reads every shaft's set word and marks its items; and the count keeps no
+// count per shaft for these builds (LS_NO_ITEM_COUNTS: a buffer of 4 bytes per shaft, 323 MiB at
+// Sponza grid-ls 64³ N=3, neither zeroed nor written), since the row holds it.
 INLINE void ls_head_len_kernel(CTX_PARAM uint i) {
-    LS_SET_LEN_STORE(V(ls_head_base) + i, LS_ITEM(V(ls_head_list)[i]));
+    uint shafts = V(ls_shafts);
+    uint s = V(ls_head_list)[i];
+    uint cell = s / shafts;
+    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    uint start = ls_row_start(CTX_ARG cell, s - cell * shafts, len);
+    uint count = 0u;
+    for (uint k = 0u; 32u * k < len; ++k) count += POPCOUNT(ls_row_word(CTX_ARG start, len, k));
+    LS_SET_LEN_STORE(V(ls_head_base) + i, count);
 }
 #endif
 
@@ -1370,12 +1382,6 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
             v |= (LS_SHAFT_SET(s + k) & ((1u << bits) - 1u)) << (bits * k);
     }
     LS_OFFSET_STORE(e, v);
-}
-#endif
-
-#ifdef KERNEL_ls_zero
-INLINE void ls_zero_kernel(CTX_PARAM uint gid) {
-    V(ls_zero)[gid] = 0u;
 }
 #endif
 
