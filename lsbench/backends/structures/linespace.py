@@ -41,7 +41,8 @@ batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's 
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
 (ls_head_counts_kernel, ls_shaft_set_kernel), and where every cell is one chunk and all cells'
-bits are kept (most builds), each group's heads listed in shaft order; (5) each head's set length,
+bits are kept (most builds), each group's heads listed in shaft order and the set indices packed
+as the offsets array's blocks hold them; (5) each head's set length,
 the sum of its items' counts (over the head lists, its row's bits: ls_head_len_kernel; else over every shaft,
 with the set's index left in a head's first item, the earlier chunks' counts in the others and
 LS_SKIP in every other shaft's items: ls_set_len_kernel), exclusive scans of the sets per cell and
@@ -253,7 +254,7 @@ LS_CARRY = KernelSpec(
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET, LS_SHAFT_SET_LIST, LS_HEAD_LEN, LS_HEAD_FILL, LS_HEAD_FILL.with_defines(LS_IDS16=1),
-               LS_SET_LEN, LS_LAYOUT, LS_CARRY)
+               LS_SET_LEN, LS_LAYOUT, LS_LAYOUT.with_defines(LS_HEAD_LIST=1), LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
@@ -690,7 +691,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             device.check_memory("ls_item_offsets", 4 * plan.items)
             item_bufs = items.alloc(device, zero=True)
             temps.extend(item_bufs.values())
-        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", n_shafts)
+        # A set word per shaft, or in the head lists' builds the offsets array's blocks (packed set indices)
+        block_words = _block_words(per_cell)
+        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", cells.count * block_words if by_heads else n_shafts)
         shaft_set_bufs = shaft_sets.alloc(device, zero=False)
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
@@ -742,11 +745,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
                 heads = device.scan_in_place(group_bufs["ls_head_counts"], words)  # heads before each word
                 if head_lists is None:
-                    device.dispatch(shaft_set_spec, shafts, group_bufs, bu)
+                    device.dispatch(shaft_set_spec, shafts, group_bufs, bu)  # a work item per shaft
                     continue
                 base = head_lists[-1][1] + head_lists[-1][2] if head_lists else 0  # heads of the groups before
                 head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
-                device.dispatch(shaft_set_spec, shafts, dict(group_bufs, ls_head_list=head_lists[-1][0]), bu)
+                device.dispatch(shaft_set_spec, (g1 - g0) * block_words, dict(group_bufs, ls_head_list=head_lists[-1][0]),
+                                bu)  # a work item per word of the cells' blocks
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads)
         count = count_spec if by_heads else items.bind(count_spec)
@@ -805,7 +809,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.check_memory("ls_shaft_offsets", 4 * offsets.entries)
         offset_bufs = offsets.alloc(device, zero=False)
         kept.extend(offset_bufs.values())
-        device.dispatch(offsets.bind(bound(LS_LAYOUT)), offsets.entries, dict(sets_bufs, **offset_bufs),
+        layout = LS_LAYOUT.with_defines(LS_HEAD_LIST=1) if by_heads else LS_LAYOUT  # blocks packed already
+        device.dispatch(offsets.bind(bound(layout)), offsets.entries, dict(sets_bufs, **offset_bufs),
                         batch_uniforms(0, cells.count))
         candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(set_refs, id_bits))
         device.check_memory("ls_shaft_tris", 4 * candidates.entries)

@@ -1246,18 +1246,42 @@ INLINE uint ls_heads_before(CTX_PARAM uint x) {
     return V(ls_head_counts)[w] + rank_in_word(V(ls_set_heads)[w], x & 31u);
 }
 
+#ifdef LS_HEAD_LIST
+// The head lists' builds (linespace.py): a work item per word of the group's cells' blocks (the
+// offsets array's layout, top), its P shafts' set indices packed as ls_layout copies them (no set
+// word per shaft, which ls_set_len reads in the other builds: Sponza grid-ls 64³ N=3 took 323 MiB of
+// them where the packed words are 170 MiB); and the group's heads in shaft order, so that the set
+// lengths and the fill visit only them (a head's rank among all heads is its set's global index:
+// cells in order, a cell's sets in the order of their heads).
+INLINE void ls_shaft_set_kernel(CTX_PARAM uint w) {
+    uint shafts = V(ls_shafts);
+    uint block = ls_block_words(shafts);
+    uint cell = w / block;  // of the group
+    uint j = w - cell * block;
+    if (j == 0u) return;  // the cell's first set: ls_layout writes it
+    uint log2_per = ls_index_log2(shafts);
+    uint bits = 32u >> log2_per;
+    uint first = (j - 1u) << log2_per;
+    uint b0 = cell * shafts;
+    uint before = ls_heads_before(CTX_ARG b0);
+    uint v = 0u;
+    for (uint k = 0u; k < (1u << log2_per) && first + k < shafts; ++k) {
+        uint b = b0 + first + k;
+        uint head = V(ls_set_slot)[b];
+        uint rank = ls_heads_before(CTX_ARG head);
+        v |= (rank - before) << (bits * k);
+        if (head == b) V(ls_head_list)[rank] = V(ls_cell_first) * shafts + b;
+    }
+    LS_SHAFT_SET_STORE(V(ls_cell_first) * block + w, v);
+}
+#else
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
     uint shafts = V(ls_shafts);
     uint head = V(ls_set_slot)[b];
     uint index = ls_heads_before(CTX_ARG head) - ls_heads_before(CTX_ARG b - b % shafts);  // group shafts of one cell are aligned
     LS_SHAFT_SET_STORE(V(ls_cell_first) * shafts + b, index | (head == b ? LS_SET_HEAD : 0u));
-#ifdef LS_HEAD_LIST
-    // The group's heads in shaft order, so that the set lengths and the fill visit only them (a
-    // head's rank among all heads is its set's global index: cells in order, a cell's sets in the
-    // order of their heads).
-    if (head == b) V(ls_head_list)[ls_heads_before(CTX_ARG b)] = V(ls_cell_first) * shafts + b;
-#endif
 }
+#endif
 #endif
 
 #ifdef KERNEL_ls_head_len
@@ -1373,6 +1397,9 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
     if (e >= set_start) v = LS_SET_LEN(e - set_start);
     else if (e % block == 0u) v = set_start + V(ls_cell_sets)[e / block];
     else {
+#ifdef LS_HEAD_LIST
+        v = LS_SHAFT_SET(e);  // packed by ls_shaft_set_kernel
+#else
         uint log2_per = ls_index_log2(shafts);
         uint bits = 32u >> log2_per;
         uint first = (e % block - 1u) << log2_per;
@@ -1380,6 +1407,7 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
         v = 0u;
         for (uint k = 0u; k < (1u << log2_per) && first + k < shafts; k++)
             v |= (LS_SHAFT_SET(s + k) & ((1u << bits) - 1u)) << (bits * k);
+#endif
     }
     LS_OFFSET_STORE(e, v);
 }
