@@ -657,6 +657,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.append(device.alloc(name, max(int(nbytes), 4), zero=zero))
         return temps[-1]
 
+    def drop(*bufs: DeviceBuffer) -> None:
+        """Release temporaries that no later pass reads, before the next allocations: memory just
+        freed is memory the driver may hand out again, where fresh pages cost their first touch
+        (on this VM ~10 us per 4 KiB page, more than the kernels' own stores)."""
+        for b in bufs:
+            temps.remove(b)
+            device.release(b)
+
     try:
         planes = temp("ls_planes", 16 * LS_PLANE_SLOTS * per_cell, zero=False)
         device.dispatch(LS_PLANES, per_cell, {"ls_planes": planes}, u)
@@ -775,6 +783,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 f"Line Space candidate lists (N={n}, {cells.count} cells) pass 2^32 - 1 "
                 "references: over the 32-bit candidate offsets")
         n_sets = device.scan_in_place(cell_sets, cells.count + 1)
+        # The sets are found: their tables are done, and so are the masks where the fill reads the bits
+        drop(*(group_bufs[name] for name in ("ls_set_table", "ls_set_slot", "ls_set_heads", "ls_head_counts")))
+        if head_lists is not None:
+            drop(masks, local_tris)
         set_lens = split_array(device, "ls_set_lens", "LS_SET_LEN", n_sets + 1)
         set_len_bufs = set_lens.alloc(device, zero=True)
         temps.extend(set_len_bufs.values())
@@ -790,7 +802,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 raise RuntimeError(f"Line Space build: the groups' heads ({listed}) differ from the cells' sets ({n_sets})")
             head_len = set_lens.bind(LS_HEAD_LEN)
             for head_list, base, heads in head_lists:
-                device.dispatch(head_len, heads, dict(group_bufs, ls_head_list=head_list, **set_len_bufs),
+                device.dispatch(head_len, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs),
                                 dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
         else:
             set_len = bound(_set_len_spec(device, one_chunk=plan.items == n_shafts))
@@ -812,6 +824,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         layout = LS_LAYOUT.with_defines(LS_HEAD_LIST=1) if by_heads else LS_LAYOUT  # blocks packed already
         device.dispatch(offsets.bind(bound(layout)), offsets.entries, dict(sets_bufs, **offset_bufs),
                         batch_uniforms(0, cells.count))
+        drop(*shaft_set_bufs.values())  # read only by the layout
         candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(set_refs, id_bits))
         device.check_memory("ls_shaft_tris", 4 * candidates.entries)
         # 16-bit ids: an item's first and last word may be shared with its neighbour's, ORed in (ls_put_candidate)
