@@ -290,20 +290,23 @@ def test_cell_groups_cover_the_batch_inside_one_chunk(per_item):
     assert linespace.plan_build(ranges, 15, 24, chunk=chunk - 2).cell_groups(0, 1000, 15, per_item) is None
 
 
-@pytest.mark.parametrize("split", ["chunks", "batches", "groups"])
+@pytest.mark.parametrize("split", ["chunks", "chunks-per-shaft", "batches", "groups"])
 def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, split):
     """Cells with more candidates than one work item may walk (the driver's loop budget): each
-    shaft is counted and filled in chunks, and its list is the one-chunk build's, in list order.
-    Likewise with the cells' masks in several batches and a fill that tests again (no pair bits),
-    and with work items walking groups of 4 cells (the last group shorter)."""
+    shaft is counted in chunks, and its list is the one-chunk build's, in list order: with the
+    set lengths and fill over the heads' whole rows ("chunks": the real budget is far above these
+    cells' rows), and with both over every shaft and chunk ("chunks-per-shaft": rows past the
+    budget). Likewise with the cells' masks in several batches and a fill that tests again (no
+    pair bits), and with work items walking groups of 4 cells (the last group shorter)."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     whole_lists = read_linespaces(whole)
-    assert whole.stats["ls_cell_batches"] == 1 and whole.stats["ls_pair_bits"]
+    assert whole.stats["ls_cell_batches"] == 1 and whole.stats["ls_pair_bits"] and whole.stats["ls_head_lists"]
     whole.release()
-    if split == "chunks":
+    if split.startswith("chunks"):
         per_candidate = linespace.LS_ITERATIONS_PER_CANDIDATE[exact_kind(device)]
         monkeypatch.setitem(linespace.LS_LOOP_BUDGET, device.backend, 3 * per_candidate)
+        monkeypatch.setattr(linespace, "head_rows_fit", lambda d, densest: split == "chunks")
     elif split == "batches":
         monkeypatch.setattr(linespace, "LS_MASK_BYTES", 4 * 24 * 30)  # 30 references of 6 N^2 masks
         monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
@@ -311,8 +314,9 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
         monkeypatch.setitem(linespace.CELLS_PER_ITEM, device.backend, 4)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     st = built.stats
-    if split == "chunks":
+    if split.startswith("chunks"):
         assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > 2 * st["shafts"], st
+        assert st["ls_head_lists"] == (split == "chunks"), st
     elif split == "groups":
         assert st["ls_work_items"] == st["shafts"] and st["linespace_cells"] > 4, st
     else:
@@ -632,3 +636,14 @@ def test_offsets_split_over_buffers_past_the_limit(device, monkeypatch, structur
     monkeypatch.setattr(linespace, "LS_MAX_CHUNKS", chunks - 1)
     with pytest.raises(DeviceLimitError, match="buffer 'ls_(shaft_offsets|item_offsets|shaft_sets)' needs .* more than"):
         backends.build(device, structure, scene, params)
+
+
+def test_head_rows_fit_the_loop_budget(monkeypatch):
+    """The head lists walk a cell's whole row in one invocation (its words, then its set bits):
+    taken only where the densest cell's row and words fit the driver's loop budget."""
+    glsl, opencl = (type("D", (), {"backend": b}) for b in ("glsl", "opencl"))
+    budget = linespace.LS_LOOP_BUDGET["glsl"]
+    densest = budget * 32 // 33
+    assert linespace.head_rows_fit(glsl, densest) and not linespace.head_rows_fit(glsl, densest + 1)
+    assert densest + -(-densest // 32) <= budget < densest + 1 + -(-(densest + 1) // 32)
+    assert linespace.head_rows_fit(opencl, 2**31)  # no budget

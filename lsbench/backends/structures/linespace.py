@@ -40,9 +40,9 @@ item's offset goes (not in the head lists' builds below: a head's row holds it) 
 batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
 table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
 (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
-(ls_head_counts_kernel, ls_shaft_set_kernel), and where every cell is one chunk and all cells'
-bits are kept (most builds), each group's heads listed in shaft order and the set indices packed
-as the offsets array's blocks hold them; (5) each head's set length,
+(ls_head_counts_kernel, ls_shaft_set_kernel), and where all cells' bits are kept and the densest
+cell's row fits one invocation (head_rows_fit; most builds), each group's heads listed in shaft
+order and the set indices packed as the offsets array's blocks hold them; (5) each head's set length,
 the sum of its items' counts (over the head lists, its row's bits: ls_head_len_kernel; else over every shaft,
 with the set's index left in a head's first item, the earlier chunks' counts in the others and
 LS_SKIP in every other shaft's items: ls_set_len_kernel), exclusive scans of the sets per cell and
@@ -234,11 +234,11 @@ LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_head
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
-# Where every cell is one chunk and all cells' pair bits are kept: each group's heads listed in
+# Where all cells' pair bits are kept and the densest row fits the loop budget: each group's heads listed in
 # shaft order (ls_shaft_set), and the set lengths and the fill over those lists only (linespace.h:
 # ls_head_len_kernel, ls_head_fill_kernel), not over every shaft and item.
 LS_SHAFT_SET_LIST = dataclasses.replace(
-    LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _uints("ls_head_list:w")).with_defines(LS_HEAD_LIST=1)
+    LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _ROW_BUFFERS + _uints("ls_head_list:w", "ls_stats:rw")).with_defines(LS_HEAD_LIST=1)
 _HEAD_UNIFORMS = LS_UNIFORMS + (Uniform("ls_head_base", "uint"),)
 LS_HEAD_LEN = _sets_kernel("ls_head_len", _ROW_BUFFERS + _uints("ls_head_list:r", "ls_set_lens:w"),
                           _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
@@ -469,6 +469,14 @@ def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
             "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * per_cell}
 
 
+def head_rows_fit(device: Device, densest: int) -> bool:
+    """Whether one invocation may walk the densest cell's whole row of pair bits within the
+    driver's loop budget: ls_head_len and ls_head_fill loop over its words and its set bits, and
+    ls_shaft_set over its words (linespace.h), where the count and the fill per item see one chunk."""
+    budget = LS_LOOP_BUDGET.get(device.backend)
+    return budget is None or densest + -(-densest // 32) <= budget
+
+
 def candidate_chunk(device: Device) -> int:
     """Most candidates one count or fill work item walks: the driver's loop budget over the
     iterations a candidate may take (LS_LOOP_BUDGET), unbounded (2^32 - 1) where there is none."""
@@ -629,7 +637,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                  "ls_pair_bits": False, "ls_id_bits": 32}
         return LineSpaces(n, per_cell, {"ls_shaft_offsets": no_offsets, "ls_shaft_tris": no_tris}, stats)
     ranges = device.read(cells.ranges, np.uint32, 2 * cells.count).reshape(-1, 2)
-    id_bits = candidate_id_bits(int((ranges[:, 1].astype(np.int64) - ranges[:, 0]).max()))
+    densest = int((ranges[:, 1].astype(np.int64) - ranges[:, 0]).max())
+    id_bits = candidate_id_bits(densest)
     mask_bytes = min(LS_MASK_BYTES, device.max_buffer_bytes)
     plan = plan_build(ranges, per_cell, patches, candidate_chunk(device), mask_bytes)
     if plan.items + 1 > UINT32_MAX:
@@ -690,9 +699,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
                          ls_local_tris=local_tris, ls_pair_bits=bits)
-        # One-chunk builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill),
-        # and no count per item (the heads' rows hold their counts)
-        by_heads = plan.items == n_shafts and all_bits
+        # Builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill), and
+        # no count per item (the heads' rows hold their counts)
+        by_heads = all_bits and head_rows_fit(device, densest)
         items = split_array(device, "ls_item_offsets", "LS_ITEM", plan.items if not by_heads else 1)
         item_bufs = {}
         if not by_heads:
@@ -710,7 +719,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
-                          ls_cell_sets=cell_sets, **shaft_set_bufs)
+                          ls_cell_sets=cell_sets, ls_stats=stats_buf, **shaft_set_bufs)
         insert_spec = LS_INSERT if LS_HASH_MASK == 0xFFFFFFFF else LS_INSERT.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
         head_lists: list[tuple[DeviceBuffer, int, int]] = [] if by_heads else None
         shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET)
@@ -877,6 +886,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_work_items": plan.items,
         "ls_cell_batches": len(plan.batches),
         "ls_pair_bits": all_bits,
+        "ls_head_lists": head_lists is not None,  # set lengths and fill over the heads' rows
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits, id_bits)

@@ -738,7 +738,8 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
-#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill)
+#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill) \
+    || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
 // Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
 INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
@@ -746,7 +747,7 @@ INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
 #endif
 
 #if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_len) \
-    || defined(KERNEL_ls_head_fill)
+    || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
 // Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
@@ -1252,7 +1253,9 @@ INLINE uint ls_heads_before(CTX_PARAM uint x) {
 // word per shaft, which ls_set_len reads in the other builds: Sponza grid-ls 64³ N=3 took 323 MiB of
 // them where the packed words are 170 MiB); and the group's heads in shaft order, so that the set
 // lengths and the fill visit only them (a head's rank among all heads is its set's global index:
-// cells in order, a cell's sets in the order of their heads).
+// cells in order, a cell's sets in the order of their heads). A cell of several chunks (more
+// candidates than ls_chunk) had a count item per chunk, none of which saw the whole row, so its
+// non-empty shafts are counted here from their rows (stats, ls_stats[0]).
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint w) {
     uint shafts = V(ls_shafts);
     uint block = ls_block_words(shafts);
@@ -1264,15 +1267,25 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint w) {
     uint first = (j - 1u) << log2_per;
     uint b0 = cell * shafts;
     uint before = ls_heads_before(CTX_ARG b0);
+    uint at = V(ls_cell_first) + cell;
+    uint len = V(ls_cell_ranges)[2u * at + 1u] - V(ls_cell_ranges)[2u * at];
     uint v = 0u;
+    uint non_empty = 0u;
     for (uint k = 0u; k < (1u << log2_per) && first + k < shafts; ++k) {
         uint b = b0 + first + k;
         uint head = V(ls_set_slot)[b];
         uint rank = ls_heads_before(CTX_ARG head);
         v |= (rank - before) << (bits * k);
         if (head == b) V(ls_head_list)[rank] = V(ls_cell_first) * shafts + b;
+        if (len > V(ls_chunk)) {
+            uint start = ls_row_start(CTX_ARG at, first + k, len);
+            uint any = 0u;
+            for (uint q = 0u; 32u * q < len && any == 0u; ++q) any = ls_row_word(CTX_ARG start, len, q);
+            non_empty += any != 0u ? 1u : 0u;
+        }
     }
     LS_SHAFT_SET_STORE(V(ls_cell_first) * block + w, v);
+    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[0], non_empty);
 }
 #else
 INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
@@ -1285,7 +1298,7 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
 #endif
 
 #ifdef KERNEL_ls_head_len
-// Where every cell is one chunk and all cells' pair bits are kept (linespace.py): set
+// Where all cells' pair bits are kept and the densest row fits one invocation (linespace.py): set
 // V(ls_head_base) + i is the set of head shaft ls_head_list[i], and its length the set bits of the
 // head's row. Only the heads are visited (Sponza grid-ls 128³ N=2: 2.9 M of 74.8 M shafts), where
 // ls_set_len_kernel reads every shaft's set word and marks its items; and the count keeps no
