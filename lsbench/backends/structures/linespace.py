@@ -34,23 +34,24 @@ patches' masks as two runs), and each reference's triangle in cell-local coordin
 (ls_local_tris, what the count and fill test), for a batch of cells at a time (LS_MASK_BYTES);
 (3) count: one item per (cell, shaft, chunk of at most candidate_chunk() candidates, the
 driver's loop budget), taken by a work item each, or where every cell of a batch is one chunk, a
-work item per shaft of a group of up to CELLS_PER_ITEM cells (BuildPlan.cell_groups), decides each candidate, from the masks where they know the answer, else
-by the facet planes and the exact test (conservative margin LS_EPS), writes the count where the
-item's offset goes (not in the head lists' builds below: a head's row holds it) and keeps each decision as a bit (LS_PAIR_BITS_BYTES: all cells' bits, or a
-batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash
-table per cell that confirms equal rows bit by bit, the smallest shaft of each set as its head
-(ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the scanned heads per word
-(ls_head_counts_kernel, ls_shaft_set_kernel), and where all cells' bits are kept and the densest
-cell's row fits one invocation (head_rows_fit; most builds), each group's heads listed in shaft
-order and the set indices packed as the offsets array's blocks hold them; (5) each head's set length,
-the sum of its items' counts (over the head lists, its row's bits: ls_head_len_kernel; else over every shaft,
-with the set's index left in a head's first item, the earlier chunks' counts in the others and
-LS_SKIP in every other shaft's items: ls_set_len_kernel), exclusive scans of the sets per cell and
-of those lengths (set offsets), then the offsets array (ls_layout_kernel; no scan over all items:
-all shafts' lists together, a stat, the count sums in 64 bits); (6) fill: only the heads write
-their candidates, each from its set's offset (plus its shaft's earlier chunks), in list order
-(over the head lists from the bits: ls_head_fill_kernel; else every item from the bits, or
-testing again where not all bits fit). docs/linespace-build.md
+work item per shaft of a group of up to CELLS_PER_ITEM cells (BuildPlan.cell_groups), decides
+each candidate, from the masks where they know the answer, else by the facet planes and the exact
+test (conservative margin LS_EPS), writes the count where the item's offset goes (not in the head
+lists' builds below: a head's row holds it) and keeps each decision as a bit (LS_PAIR_BITS_BYTES:
+all cells' bits, or a batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each
+shaft's bit row, a hash table per cell that confirms equal rows bit by bit, the smallest shaft of
+each set as its head (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the
+scanned heads per word (ls_head_counts_kernel, ls_shaft_set_kernel), and where all cells' bits are
+kept and the densest cell's row fits one invocation (head_rows_fit; most builds), each group's
+heads listed in shaft order and the set indices packed as the offsets array's blocks hold them;
+(5) each head's set length, the sum of its items' counts (over the head lists, its row's bits:
+ls_head_len_kernel; else over every shaft, with the set's index left in a head's first item, the
+earlier chunks' counts in the others and LS_SKIP in every other shaft's items: ls_set_len_kernel),
+exclusive scans of the sets per cell and of those lengths (set offsets), then the offsets array
+(ls_layout_kernel; no scan over all items: all shafts' lists together, a stat, the count sums in
+64 bits); (6) fill: only the heads write their candidates, each from its set's offset (plus its
+shaft's earlier chunks), in list order (over the head lists from the bits: ls_head_fill_kernel;
+else every item from the bits, or testing again where not all bits fit). docs/linespace-build.md
 measures each step.
 
 Both arrays may pass the driver's per-buffer limit (llvmpipe: 128 MiB per SSBO; PoCL: 2-4 GiB per
@@ -234,11 +235,13 @@ LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_head
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
-# Where all cells' pair bits are kept and the densest row fits the loop budget: each group's heads listed in
-# shaft order (ls_shaft_set), and the set lengths and the fill over those lists only (linespace.h:
-# ls_head_len_kernel, ls_head_fill_kernel), not over every shaft and item.
+# Where all cells' pair bits are kept and the densest row fits the loop budget: each group's heads
+# listed in shaft order (ls_shaft_set, which also packs the set indices as the offsets' blocks), and
+# the set lengths and the fill over those lists only (linespace.h: ls_head_len_kernel,
+# ls_head_fill_kernel), not over every shaft and item.
 LS_SHAFT_SET_LIST = dataclasses.replace(
-    LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _ROW_BUFFERS + _uints("ls_head_list:w", "ls_stats:rw")).with_defines(LS_HEAD_LIST=1)
+    LS_SHAFT_SET, buffers=LS_SHAFT_SET.buffers + _ROW_BUFFERS + _uints("ls_head_list:w", "ls_stats:rw")
+).with_defines(LS_HEAD_LIST=1)
 _HEAD_UNIFORMS = LS_UNIFORMS + (Uniform("ls_head_base", "uint"),)
 LS_HEAD_LEN = _sets_kernel("ls_head_len", _ROW_BUFFERS + _uints("ls_head_list:r", "ls_set_lens:w"),
                           _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
@@ -669,7 +672,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     def drop(*bufs: DeviceBuffer) -> None:
         """Release temporaries that no later pass reads, before the next allocations: memory just
         freed is memory the driver may hand out again, where fresh pages cost their first touch
-        (on this VM ~10 us per 4 KiB page, more than the kernels' own stores)."""
+        (~10 us per 4 KiB page on the VM of docs/linespace-build.md's thirty-first session)."""
         for b in bufs:
             temps.remove(b)
             device.release(b)
@@ -710,7 +713,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             temps.extend(item_bufs.values())
         # A set word per shaft, or in the head lists' builds the offsets array's blocks (packed set indices)
         block_words = _block_words(per_cell)
-        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET", cells.count * block_words if by_heads else n_shafts)
+        shaft_sets = split_array(device, "ls_shaft_sets", "LS_SHAFT_SET",
+                                 cells.count * block_words if by_heads else n_shafts)
         shaft_set_bufs = shaft_sets.alloc(device, zero=False)
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
