@@ -688,8 +688,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(LS_EDGES if by_edges else LS_REACH, per_cell,
                         {"ls_planes": planes, "ls_edges": edges, "ls_reach": reach}, u)
         cull_margin = max(float(device.read(reach, np.float32).max()), LS_EPS) + LS_CULL_SLACK
-        # ls_stats: words 0 (non-empty shafts of several chunks, ls_set_len) and 1 (cut loops), then
-        # the count's LS_STAT_BUCKETS lines of 16 words (non-empty shafts, candidates low and high)
+        # ls_stats: words 0 (non-empty shafts of several chunks: ls_set_len, or ls_shaft_set with head
+        # lists) and 1 (cut loops), then the count's LS_STAT_BUCKETS lines of 16 words (non-empty
+        # shafts, candidates low and high)
         stats_buf = temp("ls_stats", 64 * (1 + LS_STAT_BUCKETS))
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
