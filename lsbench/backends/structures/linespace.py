@@ -250,6 +250,9 @@ LS_HEAD_FILL = _sets_kernel("ls_head_fill", _uints("ls_head_list:r", "ls_cell_ra
                             _HEAD_UNIFORMS + (Uniform("ls_bits_base", "uint"),))
 LS_LAYOUT = _sets_kernel("ls_layout", _uints("ls_cell_sets:r", "ls_shaft_sets:r", "ls_set_lens:r",
                                              "ls_shaft_offsets:w"))
+# The head lists' builds: the layout copies the packed blocks and the sets' offsets, and this writes
+# each block's first word (linespace.h: ls_first_sets_kernel).
+LS_FIRST_SETS = _sets_kernel("ls_first_sets", _uints("ls_cell_sets:r", "ls_shaft_offsets:w"))
 # A split offset array is scanned chunk by chunk; this adds the earlier chunks' total.
 LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
@@ -257,7 +260,7 @@ LS_CARRY = KernelSpec(
 
 BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET, LS_SHAFT_SET_LIST, LS_HEAD_LEN, LS_HEAD_FILL, LS_HEAD_FILL.with_defines(LS_IDS16=1),
-               LS_SET_LEN, LS_LAYOUT, LS_LAYOUT.with_defines(LS_HEAD_LIST=1), LS_CARRY)
+               LS_SET_LEN, LS_LAYOUT, LS_LAYOUT.with_defines(LS_HEAD_LIST=1), LS_FIRST_SETS, LS_CARRY)
 
 # The undecided triangle/shaft pairs (the facet planes neither separate nor contain the triangle)
 # get an exact test: Sutherland-Hodgman clipping against the facet planes (thesis 3.3.3), the
@@ -838,6 +841,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         layout = LS_LAYOUT.with_defines(LS_HEAD_LIST=1) if by_heads else LS_LAYOUT  # blocks packed already
         device.dispatch(offsets.bind(bound(layout)), offsets.entries, dict(sets_bufs, **offset_bufs),
                         batch_uniforms(0, cells.count))
+        if by_heads:
+            device.dispatch(offsets.bind(LS_FIRST_SETS), cells.count, dict(ls_cell_sets=cell_sets, **offset_bufs),
+                            batch_uniforms(0, cells.count))
         drop(*shaft_set_bufs.values())  # read only by the layout
         candidates = split_array(device, "ls_shaft_tris", "LS_CANDIDATE", candidate_words(set_refs, id_bits))
         device.check_memory("ls_shaft_tris", 4 * candidates.entries)

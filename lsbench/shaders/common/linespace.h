@@ -1402,6 +1402,16 @@ INLINE void ls_set_len_kernel(CTX_PARAM uint s) {
 
 #ifdef KERNEL_ls_layout
 // ---- Build: the Line Spaces' ls_shaft_offsets (layout at the top), one entry per work item ----
+#ifdef LS_HEAD_LIST
+// The head lists' builds: ls_shaft_set packed the blocks' set indices already, so the entries are
+// a copy of those words and then the sets' offsets, with no division per entry to find a block's
+// first word (that division was 0.25 of PoCL's 0.35 s here, Sponza grid-ls 64³ N=3):
+// ls_first_sets_kernel writes the first words after this pass.
+INLINE void ls_layout_kernel(CTX_PARAM uint e) {
+    uint set_start = V(ls_cell_end) * ls_block_words(V(ls_shafts));
+    LS_OFFSET_STORE(e, e >= set_start ? LS_SET_LEN(e - set_start) : LS_SHAFT_SET(e));
+}
+#else
 INLINE void ls_layout_kernel(CTX_PARAM uint e) {
     uint shafts = V(ls_shafts);
     uint block = ls_block_words(shafts);
@@ -1410,9 +1420,6 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
     if (e >= set_start) v = LS_SET_LEN(e - set_start);
     else if (e % block == 0u) v = set_start + V(ls_cell_sets)[e / block];
     else {
-#ifdef LS_HEAD_LIST
-        v = LS_SHAFT_SET(e);  // packed by ls_shaft_set_kernel
-#else
         uint log2_per = ls_index_log2(shafts);
         uint bits = 32u >> log2_per;
         uint first = (e % block - 1u) << log2_per;
@@ -1420,9 +1427,17 @@ INLINE void ls_layout_kernel(CTX_PARAM uint e) {
         v = 0u;
         for (uint k = 0u; k < (1u << log2_per) && first + k < shafts; k++)
             v |= (LS_SHAFT_SET(s + k) & ((1u << bits) - 1u)) << (bits * k);
-#endif
     }
     LS_OFFSET_STORE(e, v);
+}
+#endif
+#endif
+
+#ifdef KERNEL_ls_first_sets
+// Cell c's block starts with its first set's entry among the sets' offsets (layout at the top).
+INLINE void ls_first_sets_kernel(CTX_PARAM uint c) {
+    uint block = ls_block_words(V(ls_shafts));
+    LS_OFFSET_STORE(c * block, V(ls_cell_end) * block + V(ls_cell_sets)[c]);
 }
 #endif
 
