@@ -850,19 +850,20 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # 16-bit ids: an item's first and last word may be shared with its neighbour's, ORed in (ls_put_candidate)
         tris_bufs = candidates.alloc(device, zero=id_bits == 16)
         kept.extend(tris_bufs.values())
-        fill = candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec)))
-        fill_bufs = dict(cell_bufs, **item_bufs, **set_len_bufs, **tris_bufs)
         if head_lists is not None:
             head_fill = candidates.bind(set_lens.bind(LS_HEAD_FILL.with_defines(LS_IDS16=1) if id_bits == 16 else LS_HEAD_FILL))
             for head_list, base, heads in head_lists:
                 device.dispatch(head_fill, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs, **tris_bufs),
                                 dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
-        masks_ready = all_bits or len(plan.batches) == 1
-        for c0, c1 in ([] if head_lists is not None else plan.batches):
-            bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
-            if not masks_ready:
-                device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
-            shaft_pass(fill, c0, c1, fill_bufs, bu)
+        else:
+            fill = candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec)))
+            fill_bufs = dict(cell_bufs, **item_bufs, **set_len_bufs, **tris_bufs)
+            masks_ready = all_bits or len(plan.batches) == 1
+            for c0, c1 in plan.batches:
+                bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
+                if not masks_ready:
+                    device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
+                shaft_pass(fill, c0, c1, fill_bufs, bu)
         first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
         non_empty, cut = int(first_line[0] + stat_words[1:, 0].sum()), int(first_line[1])
         if cut:

@@ -746,6 +746,19 @@ INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
 }
 #endif
 
+#if defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill)
+// Head shaft s's row (s counted over all cells): its first bit and its length.
+STRUCT(LsRow) { uint start; uint len; };
+
+INLINE LsRow ls_shaft_row(CTX_PARAM uint s) {
+    uint cell = s / V(ls_shafts);
+    LsRow row;
+    row.len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+    row.start = ls_row_start(CTX_ARG cell, s - cell * V(ls_shafts), row.len);
+    return row;
+}
+#endif
+
 #if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_len) \
     || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
@@ -1261,7 +1274,7 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint w) {
     uint block = ls_block_words(shafts);
     uint cell = w / block;  // of the group
     uint j = w - cell * block;
-    if (j == 0u) return;  // the cell's first set: ls_layout writes it
+    if (j == 0u) return;  // the cell's first set: ls_first_sets_kernel writes it
     uint log2_per = ls_index_log2(shafts);
     uint bits = 32u >> log2_per;
     uint first = (j - 1u) << log2_per;
@@ -1305,13 +1318,9 @@ INLINE void ls_shaft_set_kernel(CTX_PARAM uint b) {
 // count per shaft for these builds (LS_NO_ITEM_COUNTS: a buffer of 4 bytes per shaft, 323 MiB at
 // Sponza grid-ls 64³ N=3, neither zeroed nor written), since the row holds it.
 INLINE void ls_head_len_kernel(CTX_PARAM uint i) {
-    uint shafts = V(ls_shafts);
-    uint s = V(ls_head_list)[i];
-    uint cell = s / shafts;
-    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
-    uint start = ls_row_start(CTX_ARG cell, s - cell * shafts, len);
+    LsRow row = ls_shaft_row(CTX_ARG V(ls_head_list)[i]);
     uint count = 0u;
-    for (uint k = 0u; 32u * k < len; ++k) count += POPCOUNT(ls_row_word(CTX_ARG start, len, k));
+    for (uint k = 0u; 32u * k < row.len; ++k) count += POPCOUNT(ls_row_word(CTX_ARG row.start, row.len, k));
     LS_SET_LEN_STORE(V(ls_head_base) + i, count);
 }
 #endif
@@ -1321,11 +1330,8 @@ INLINE void ls_head_len_kernel(CTX_PARAM uint i) {
 // bits, list order) from its set's offset (the scanned lengths), as ls_shaft_kernel's fill from the
 // bits does for an item, without visiting the other shafts' items.
 INLINE void ls_head_fill_kernel(CTX_PARAM uint i) {
-    uint shafts = V(ls_shafts);
-    uint s = V(ls_head_list)[i];
-    uint cell = s / shafts;
-    uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
-    ls_fill_row(CTX_ARG ls_row_start(CTX_ARG cell, s - cell * shafts, len), len, LS_SET_LEN(V(ls_head_base) + i), 0u);
+    LsRow row = ls_shaft_row(CTX_ARG V(ls_head_list)[i]);
+    ls_fill_row(CTX_ARG row.start, row.len, LS_SET_LEN(V(ls_head_base) + i), 0u);
 }
 #endif
 
