@@ -290,13 +290,14 @@ def test_cell_groups_cover_the_batch_inside_one_chunk(per_item):
     assert linespace.plan_build(ranges, 15, 24, chunk=chunk - 2).cell_groups(0, 1000, 15, per_item) is None
 
 
-@pytest.mark.parametrize("split", ["chunks", "chunks-per-shaft", "batches", "groups"])
+@pytest.mark.parametrize("split", ["chunks", "chunks-by-cells", "chunks-per-shaft", "batches", "groups"])
 def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, split):
     """Cells with more candidates than one work item may walk (the driver's loop budget): each
     shaft is counted in chunks, and its list is the one-chunk build's, in list order: with the
     set lengths and fill over the heads' whole rows ("chunks": the real budget is far above these
-    cells' rows), and with both over every shaft and chunk ("chunks-per-shaft": rows past the
-    budget). Likewise with the cells' masks in several batches and a fill that tests again (no
+    cells' rows; "chunks-by-cells": and each cell's sets found by one work item, which counts the
+    non-empty shafts of such cells), and with both over every shaft and chunk ("chunks-per-shaft":
+    rows past the budget). Likewise with the cells' masks in several batches and a fill that tests again (no
     pair bits), and with work items walking groups of 4 cells (the last group shorter)."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
@@ -306,7 +307,8 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     if split.startswith("chunks"):
         per_candidate = linespace.LS_ITERATIONS_PER_CANDIDATE[exact_kind(device)]
         monkeypatch.setitem(linespace.LS_LOOP_BUDGET, device.backend, 3 * per_candidate)
-        monkeypatch.setattr(linespace, "head_rows_fit", lambda d, densest: split == "chunks")
+        monkeypatch.setattr(linespace, "head_rows_fit", lambda d, densest: split != "chunks-per-shaft")
+        monkeypatch.setattr(linespace, "cells_fit_loop_budget", lambda d, densest, per_cell: split == "chunks-by-cells")
     elif split == "batches":
         monkeypatch.setattr(linespace, "LS_MASK_BYTES", 4 * 24 * 30)  # 30 references of 6 N^2 masks
         monkeypatch.setattr(linespace, "LS_PAIR_BITS_BYTES", 0)
@@ -316,7 +318,8 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     st = built.stats
     if split.startswith("chunks"):
         assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > 2 * st["shafts"], st
-        assert st["ls_head_lists"] == (split == "chunks"), st
+        assert st["ls_head_lists"] == (split != "chunks-per-shaft"), st
+        assert st["ls_sets_by_cells"] == (split == "chunks-by-cells") and st["ls_sets_cells_cut"] == 0, st
     elif split == "groups":
         assert st["ls_work_items"] == st["shafts"] and st["linespace_cells"] > 4, st
     else:
@@ -348,6 +351,44 @@ def test_sets_are_confirmed_word_by_word(device, monkeypatch, mask):
     for lo, hi in zip(offs[:-1], offs[1:]):
         assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
     built.release()
+
+
+def test_sets_found_again_where_the_loop_budget_cuts_a_cell(device, monkeypatch):
+    """A cell's sets are found by one work item, all its probes in one invocation: with a hash of
+    0 bits every row probes past all the sets before it, which on llvmpipe spends the loop budget
+    (N = 3: 1,215 shafts a cell). The cut cells are counted and their groups found again per
+    shaft, so the lists, the layout and the stats are the full hash's; PoCL has no budget."""
+    scene, res, n = random_scene(), (2, 2, 2), 3
+    whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    assert whole.stats["ls_sets_by_cells"] and whole.stats["ls_sets_cells_cut"] == 0, whole.stats
+    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole_stats = whole.stats
+    whole.release()
+    monkeypatch.setattr(linespace, "LS_HASH_MASK", 0)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    st = built.stats
+    assert st["ls_sets_by_cells"] and (st["ls_sets_cells_cut"] > 0) == (device.backend == "glsl"), st
+    for key in ("non_empty_shafts", "candidate_references", "ls_sets", "ls_set_references"):
+        assert st[key] == whole_stats[key], key
+    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(offs, whole_lists[1])
+    for lo, hi in zip(offs[:-1], offs[1:]):
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    built.release()
+
+
+def test_cells_fit_the_loop_budget():
+    """One work item finds a cell's sets where clearing its table and a hash and one compare per
+    shaft take at most half the driver's loop budget (the rest for further probes)."""
+    glsl, opencl = (type("D", (), {"backend": b}) for b in ("glsl", "opencl"))
+    budget = linespace.LS_LOOP_BUDGET["glsl"]
+    per_cell = 15 * 3**4
+    assert linespace.cells_fit_loop_budget(glsl, 32 * 7, per_cell)  # 7 words: 2,430 + 1,215 x 23 <= 32,767
+    assert not linespace.cells_fit_loop_budget(glsl, 32 * 7 + 1, per_cell)  # 8 words: ... x 26 > 32,767
+    assert 2 * per_cell + per_cell * 23 <= budget // 2 < 2 * per_cell + per_cell * 26
+    assert linespace.cells_fit_loop_budget(opencl, 2**31, 15 * 8**4)  # no budget
 
 
 def exact_kind(device) -> str:

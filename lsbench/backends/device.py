@@ -235,7 +235,7 @@ class Device(abc.ABC):
         memory next to what is allocated. Backends that know their memory override it."""
 
     def loop_limit_error(self, what: str) -> DeviceLimitError:
-        """The driver cut a kernel's loops (the probe of shaders/common/scene.h); `what` names the
+        """The driver cut a kernel's loops (the probe of shaders/common/geometry.h); `what` names the
         loops and why they ran long."""
         return DeviceLimitError(
             f"the {self.backend} driver cut short {what}; llvmpipe stops a shader invocation's loops "

@@ -14,7 +14,7 @@ from .kernels import SHADER_ROOT, Buf, KernelSpec, kernel_defines, numbered, rea
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # Loop iterations per ray in one traversal launch on llvmpipe (Device.loop_budget): its limit of
-# 65535 (LP_MAX_TGSI_LOOP_ITERATIONS, shaders/common/scene.h) counts every loop of an invocation
+# 65535 (LP_MAX_TGSI_LOOP_ITERATIONS, shaders/common/geometry.h) counts every loop of an invocation
 # and is shared by a SIMD group of lanes (8 with AVX2, 16 with AVX-512), whose loops run while any
 # lane runs (the candidate loops of diverging lanes add up), so a lane gets a 16th of it, which
 # also leaves room for what the walks run besides steps and tests (the stack restore, the probe).

@@ -81,7 +81,7 @@ class GridGeometry:
             "grid_inv_voxel": as_float4(1.0 / np.asarray(self.voxel_size)),
             "grid_res": as_int4(self.resolution),
             "box_eps": BOX_EPS,
-            "loop_probe": 2,  # shaders/common/scene.h: loops_intact
+            "loop_probe": 2,  # shaders/common/geometry.h: loops_intact
         }
 
 

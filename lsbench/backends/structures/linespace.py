@@ -105,7 +105,7 @@ UINT32_MAX = 2**32 - 1
 # buffers per compute shader (a trace binding more fails naming GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS);
 # PoCL's global memory (7-14 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
-# llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/scene.h); a
+# llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/geometry.h); a
 # count or fill work item runs one loop iteration per candidate of its chunk (the runs of
 # LS_CULL_RUNS are only where work items run one after the other: no GL driver) plus the exact test's
 # inner loops where the compiler keeps them (SAT: at most 12; clipping: 8 planes x 2 loops of at
@@ -232,6 +232,13 @@ LS_HEADS = _sets_kernel("ls_heads", _uints("ls_set_table:r", "ls_set_slot:rw", "
 LS_HEAD_COUNTS = _sets_kernel("ls_head_counts", _uints("ls_set_heads:r", "ls_head_counts:w"))
 LS_SHAFT_SET = _sets_kernel("ls_shaft_set", _uints("ls_set_slot:r", "ls_set_heads:r", "ls_head_counts:r",
                                                    "ls_shaft_sets:w"))
+# The head lists' builds: a work item per cell finds its sets in shaft order, then lists its heads
+# (linespace.h: ls_cell_find_sets_kernel, ls_cell_head_list_kernel), in place of ls_insert ..
+# ls_shaft_set, where a cell's rows fit one invocation's loop budget (cells_fit_loop_budget).
+LS_CELL_FIND_SETS = _sets_kernel("ls_cell_find_sets", _ROW_BUFFERS + _uints(
+    "ls_set_table:rw", "ls_set_slot:rw", "ls_shaft_sets:w", "ls_group_sets:w", "ls_stats:rw"))
+LS_CELL_HEAD_LIST = _sets_kernel("ls_cell_head_list", _uints("ls_set_slot:r", "ls_group_sets:r", "ls_cell_sets:w",
+                                                             "ls_head_list:w"))
 # Before and after the scans: set lengths (and what the fill's items need), the offsets array.
 LS_SET_LEN = _sets_kernel("ls_set_len", _uints("ls_item_bases:r", "ls_item_offsets:rw", "ls_shaft_sets:r",
                                                "ls_cell_sets:r", "ls_set_lens:w", "ls_stats:rw"), LS_UNIFORMS)
@@ -475,6 +482,17 @@ def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
             "ls_min_candidates": k, "ls_offsets_bytes_saved": 4 * skipped * per_cell}
 
 
+def cells_fit_loop_budget(device: Device, densest: int, per_cell: int) -> bool:
+    """Whether one invocation may find a cell's sets (linespace.h: ls_cell_find_sets_kernel): within
+    the driver's loop budget it clears the cell's table (2 x 15 N^4 slots) and, per shaft, hashes
+    its row and compares it with one slot's (the words of the densest row each), with room to spare
+    for the probes past the first one. Where more probes than that spend the budget, the kernel
+    says so and that group's sets are found by the passes per shaft."""
+    budget = LS_LOOP_BUDGET.get(device.backend)
+    words = -(-densest // 32)
+    return budget is None or 2 * per_cell + per_cell * (2 + 3 * words) <= budget // 2
+
+
 def head_rows_fit(device: Device, densest: int) -> bool:
     """Whether one invocation may walk the densest cell's whole row of pair bits within the
     driver's loop budget: ls_head_len and ls_head_fill loop over its words and its set bits, and
@@ -691,9 +709,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         device.dispatch(LS_EDGES if by_edges else LS_REACH, per_cell,
                         {"ls_planes": planes, "ls_edges": edges, "ls_reach": reach}, u)
         cull_margin = max(float(device.read(reach, np.float32).max()), LS_EPS) + LS_CULL_SLACK
-        # ls_stats: words 0 (non-empty shafts of several chunks: ls_set_len, or ls_shaft_set with head
-        # lists) and 1 (cut loops), then the count's LS_STAT_BUCKETS lines of 16 words (non-empty
-        # shafts, candidates low and high)
+        # ls_stats: words 0 (non-empty shafts of several chunks: ls_set_len, or ls_shaft_set with
+        # head lists), 1 (cut loops), 2 (cells whose sets' probes the loop budget cut:
+        # ls_cell_find_sets) and 3 (ls_cell_find_sets' non-empty shafts of several chunks), then
+        # the count's LS_STAT_BUCKETS lines of 16 words (non-empty shafts, candidates low and high)
         stats_buf = temp("ls_stats", 64 * (1 + LS_STAT_BUCKETS))
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
                                  (("ls_item_bases", plan.item_bases), ("ls_ref_bases", plan.ref_bases)))
@@ -728,9 +747,22 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, ls_stats=stats_buf, **shaft_set_bufs)
-        insert_spec = LS_INSERT if LS_HASH_MASK == 0xFFFFFFFF else LS_INSERT.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
+        def hashed(spec: KernelSpec) -> KernelSpec:  # tests: a hash that collides (LS_HASH_MASK)
+            return spec if LS_HASH_MASK == 0xFFFFFFFF else spec.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
+
+        insert_spec = hashed(LS_INSERT)
         head_lists: list[tuple[DeviceBuffer, int, int]] = [] if by_heads else None
         shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET)
+        # The sets of a cell found by one work item, in shaft order, where work items run one after
+        # the other anyway (PoCL) and the head lists are built (linespace.h: ls_cell_find_sets_kernel)
+        # The sets of a cell found by one work item, in shaft order (linespace.h: ls_cell_find_sets_kernel)
+        by_cells = head_lists is not None and cells_fit_loop_budget(device, densest, per_cell)
+        if by_cells:
+            group_bufs["ls_group_sets"] = temp("ls_group_sets", 4 * (group_cells + 1), zero=False)
+            cell_find_sets = shaft_sets.bind(hashed(LS_CELL_FIND_SETS))
+        # Cells whose sets the loop budget kept from one invocation (ls_stats[2]), and the non-empty
+        # shafts of several chunks that ls_cell_find_sets counted (ls_stats[3]) in groups it finished
+        cut_cells, cells_non_empty, counted_before = 0, 0, 0
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
@@ -758,13 +790,29 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 device.release(group_buf)
 
         def find_sets(c0: int, c1: int, bits_base: int) -> None:
+            nonlocal cut_cells, cells_non_empty, counted_before
             for g0 in range(c0, c1, group_cells):
                 g1 = min(g0 + group_cells, c1)
                 shafts = (g1 - g0) * per_cell
+                bu = batch_uniforms(g0, g1, bits_base)
+                if by_cells:  # each cell clears its own table
+                    device.dispatch(cell_find_sets, g1 - g0, group_bufs, bu)
+                    # Where a driver has a loop budget, each group's words 2 and 3, so that a group
+                    # some cell of which was cut is found again below and counted there only
+                    cut, counted = (int(v) for v in device.read(stats_buf, np.uint32, 4)[2:]) \
+                        if device.backend in LS_LOOP_BUDGET else (0, 0)
+                    group_counted, counted_before = counted - counted_before, counted
+                    if cut == cut_cells:
+                        cells_non_empty += group_counted
+                        heads = device.scan_in_place(group_bufs["ls_group_sets"], g1 - g0 + 1)  # sets of the cells before
+                        base = head_lists[-1][1] + head_lists[-1][2] if head_lists else 0  # heads of the groups before
+                        head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
+                        device.dispatch(LS_CELL_HEAD_LIST, g1 - g0, dict(group_bufs, ls_head_list=head_lists[-1][0]), bu)
+                        continue
+                    cut_cells = cut  # the loop budget cut some cell's probes: this group by the passes below
                 device.fill_zero(group_bufs["ls_set_table"], 8 * shafts)
                 words = -(-shafts // 32)
                 device.fill_zero(group_bufs["ls_set_heads"], 4 * words)
-                bu = batch_uniforms(g0, g1, bits_base)
                 for spec in (insert_spec, LS_HEADS):
                     device.dispatch(spec, shafts, group_bufs, bu)
                 device.dispatch(LS_HEAD_COUNTS, words, group_bufs, bu)  # heads per word, scanned:
@@ -801,7 +849,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 "references: over the 32-bit candidate offsets")
         n_sets = device.scan_in_place(cell_sets, cells.count + 1)
         # The sets are found: their tables are done, and so are the masks where the fill reads the bits
-        drop(*(group_bufs[name] for name in ("ls_set_table", "ls_set_slot", "ls_set_heads", "ls_head_counts")))
+        drop(*(group_bufs[name] for name in ("ls_set_table", "ls_set_slot", "ls_set_heads", "ls_head_counts",
+                                             "ls_group_sets") if name in group_bufs))
         if head_lists is not None:
             drop(masks, local_tris)
         set_lens = split_array(device, "ls_set_lens", "LS_SET_LEN", n_sets + 1)
@@ -865,7 +914,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                     device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
                 shaft_pass(fill, c0, c1, fill_bufs, bu)
         first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
-        non_empty, cut = int(first_line[0] + stat_words[1:, 0].sum()), int(first_line[1])
+        if by_cells and device.backend not in LS_LOOP_BUDGET:  # no group was found again
+            cells_non_empty = int(first_line[3])
+        non_empty = int(first_line[0] + cells_non_empty + stat_words[1:, 0].sum())
+        cut = int(first_line[1])
         if cut:
             raise device.loop_limit_error(f"the candidate loops of {cut} shafts: these cells hold too many "
                                           "triangles for one invocation")
@@ -899,6 +951,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_cell_batches": len(plan.batches),
         "ls_pair_bits": all_bits,
         "ls_head_lists": head_lists is not None,  # set lengths and fill over the heads' rows
+        "ls_sets_by_cells": by_cells,  # a cell's sets found by one work item (ls_cell_find_sets)
+        "ls_sets_cells_cut": cut_cells,  # ... but the loop budget cut these, so their groups went per shaft
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits, id_bits)

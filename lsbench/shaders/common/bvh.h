@@ -387,7 +387,7 @@ INLINE void bvh_restructure_kernel(CTX_PARAM uint prim) {
         if (V(bvh_counts)[node] > V(bvh_leaf_size)) bvh_restructure(CTX_ARG node);
         node = V(bvh_parents)[node];
     }
-    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // scene.h: the driver cut loops
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // geometry.h: the driver cut loops
 }
 #endif
 

@@ -738,8 +738,8 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
 
 #endif  // triangle / shaft test
 
-#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill) \
-    || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
+#if defined(LS_PAIR_BITS) || defined(KERNEL_ls_insert) || defined(KERNEL_ls_cell_find_sets) || defined(KERNEL_ls_head_len) \
+    || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
 // Where shaft `shaft` of cell `cell` starts in ls_pair_bits, and its length (the cell's references).
 INLINE uint ls_row_start(CTX_PARAM uint cell, uint shaft, uint len) {
     return (V(ls_ref_bases)[cell] - V(ls_bits_base)) * V(ls_shafts) + shaft * len;
@@ -759,8 +759,8 @@ INLINE LsRow ls_shaft_row(CTX_PARAM uint s) {
 }
 #endif
 
-#if defined(KERNEL_ls_insert) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) || defined(KERNEL_ls_head_len) \
-    || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
+#if defined(KERNEL_ls_insert) || defined(KERNEL_ls_cell_find_sets) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) \
+    || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
 // Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
@@ -997,7 +997,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[stat + 3u], sum_hi);
 #endif
 #ifndef KERNEL_ls_fill
-    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: scene.h
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: geometry.h
 #endif
 }
 #endif  // build: count and fill
@@ -1167,7 +1167,7 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#ifdef KERNEL_ls_insert
+#if defined(KERNEL_ls_insert) || defined(KERNEL_ls_cell_find_sets)
 // ---- Build: one list per distinct candidate set of a cell (issue 16) -----------------------
 // A group of cells [ls_cell_first, ls_cell_end) at a time, its shafts numbered b = 0.. from the
 // group's first: shaft b's decisions are its row of ls_pair_bits (one bit per reference of its
@@ -1199,6 +1199,9 @@ INLINE int ls_rows_equal(CTX_PARAM uint start_a, uint start_b, uint len) {
     return 1;
 }
 
+#endif
+
+#ifdef KERNEL_ls_insert
 // Table slots hold member + 1 (0: empty); ls_set_slot[b] gets the slot shaft b joined.
 // One integer division per shaft (its cell): the hash picks its slot by a multiply (MUL_HI, the
 // high word of hash x size), and a claimer's row lies (claimer - b) rows from b's (same cell).
@@ -1227,6 +1230,95 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
             return;
         }
         slot = slot + 1u == size ? 0u : slot + 1u;
+    }
+}
+#endif
+
+#ifdef KERNEL_ls_cell_find_sets
+// The head lists' builds: a work item per cell of the group walks its shafts in order and inserts
+// each row into the cell's table (the same table, hash and row compare as ls_insert_kernel), so a
+// row not seen before starts the next set: sets numbered in the order of their first shaft, as
+// ls_insert .. ls_shaft_set number them, with no atomics, no pass to resolve the heads and no
+// ranks to look up per shaft (Sponza grid-ls 64³ N=3, PoCL: those passes took 0.95 s, this one
+// 0.5 s; grid-ls glsl 128³ N=2: 1.95 against 1.1 s; docs/linespace-build.md). It packs the set
+// indices into the cell's block words (the offsets' layout, top), keeps each shaft's index in
+// ls_set_slot (the cell's shafts from c x 15 N^4) for the shafts that join it and for
+// ls_cell_head_list_kernel, and its set count in ls_group_sets[c] (scanned next). A cell of
+// several chunks has its non-empty shafts counted here from their rows (stats, ls_stats[3]), as
+// ls_shaft_set_kernel does. All of a cell's probes run in one invocation: where a driver's loop
+// budget cut them (geometry.h), ls_stats[2] counts the cell and the host finds that group's sets
+// again by the passes per shaft (linespace.py).
+INLINE void ls_cell_find_sets_kernel(CTX_PARAM uint c) {
+    uint shafts = V(ls_shafts);
+    uint at = V(ls_cell_first) + c;
+    uint len = V(ls_cell_ranges)[2u * at + 1u] - V(ls_cell_ranges)[2u * at];
+    uint start0 = ls_row_start(CTX_ARG at, 0u, len);
+    uint size = 2u * shafts;
+    uint region = c * size;
+    uint b0 = c * shafts;
+    uint log2_per = ls_index_log2(shafts);
+    uint per_mask = (1u << log2_per) - 1u;
+    uint bits = 32u >> log2_per;
+    uint word_base = at * ls_block_words(shafts) + 1u;  // the block's words after its first
+    if (c == 0u) V(ls_group_sets)[V(ls_cell_end) - V(ls_cell_first)] = 0u;  // the scan's total
+    // The cell's table cleared here, where the probes will find it in the cache (a fill of the
+    // group's whole table before this pass left every cell's first probes to miss).
+    for (uint k = 0u; k < size; ++k) V(ls_set_table)[region + k] = 0u;
+    uint sets = 0u;
+    uint non_empty = 0u;
+    uint word = 0u;
+    for (uint s = 0u; s < shafts; ++s) {
+        uint start = start0 + s * len;
+        if (len > V(ls_chunk)) {  // several count chunks (a driver's loop budget: not PoCL's)
+            uint any = 0u;
+            for (uint k = 0u; 32u * k < len && any == 0u; ++k) any = ls_row_word(CTX_ARG start, len, k);
+            non_empty += any != 0u ? 1u : 0u;
+        }
+        uint slot = MUL_HI(ls_row_hash(CTX_ARG start, len), size);
+        uint index = sets;
+        // Fewer sets than shafts, in 2 x 15 N^4 slots: an empty slot comes within `size` probes.
+        for (uint probe = 0u; probe < size; ++probe) {
+            uint member = V(ls_set_table)[region + slot];
+            if (member == 0u) {
+                V(ls_set_table)[region + slot] = s + 1u;
+                sets += 1u;
+                break;
+            }
+            if (ls_rows_equal(CTX_ARG start0 + (member - 1u) * len, start, len) != 0) {
+                index = V(ls_set_slot)[b0 + member - 1u];
+                break;
+            }
+            slot = slot + 1u == size ? 0u : slot + 1u;
+        }
+        V(ls_set_slot)[b0 + s] = index;
+        word |= index << (bits * (s & per_mask));
+        if ((s & per_mask) == per_mask || s + 1u == shafts) {
+            LS_SHAFT_SET_STORE(word_base + (s >> log2_per), word);
+            word = 0u;
+        }
+    }
+    V(ls_group_sets)[c] = sets;
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[2], 1u);
+    if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[3], non_empty);  // the host keeps it where no cell was cut
+}
+#endif
+
+#ifdef KERNEL_ls_cell_head_list
+// After ls_cell_find_sets_kernel and the scan of ls_group_sets (the sets of the group's cells
+// before c): cell c's set count, and its heads in shaft order, a shaft being the head of set `next`
+// where its index is `next` (sets are numbered by their first shaft), as global shaft numbers.
+INLINE void ls_cell_head_list_kernel(CTX_PARAM uint c) {
+    uint shafts = V(ls_shafts);
+    uint b0 = c * shafts;
+    uint rank = V(ls_group_sets)[c];
+    uint sets = V(ls_group_sets)[c + 1u] - rank;
+    V(ls_cell_sets)[V(ls_cell_first) + c] = sets;
+    uint next = 0u;
+    for (uint s = 0u; next < sets; ++s) {
+        if (V(ls_set_slot)[b0 + s] == next) {
+            V(ls_head_list)[rank + next] = V(ls_cell_first) * shafts + b0 + s;
+            next += 1u;
+        }
     }
 }
 #endif

@@ -45,20 +45,3 @@ INLINE uint voxel_index(CTX_PARAM int3 c) {
     int3 r = V(grid_res).xyz;
     return U32(c.x) + U32(r.x) * (U32(c.y) + U32(r.y) * U32(c.z));
 }
-
-// ---- Driver loop budget ------------------------------------------------------------------------
-// llvmpipe (gallivm) ends every loop of a shader invocation, silently, once all its loops together
-// have run 65535 iterations (LP_MAX_TGSI_LOOP_ITERATIONS, one budget per SIMD group of lanes);
-// from then on every loop runs its body once. Dense scenes at low resolution pass that (BMW at
-// 32^3: 58k triangles in one voxel). So every long kernel ends with a probe: a loop of
-// V(loop_probe) = 2 iterations (a uniform, so no compiler can count it). If it runs only once,
-// the budget was spent and the kernel's loops may have been cut: a traversal stores the ray as
-// LOOP_CUT_PRIM (trace.h: cut_hit), the Line Space build counts the shaft, and the host fails the
-// case naming the limit instead of reporting misses. (A probe on the loops' own exit conditions
-// does not work: the compiler folds them, knowing no other exit.) Drivers without such a limit
-// always count 2.
-INLINE int loops_intact(uint trips) {  // trips = V(loop_probe)
-    uint runs = 0u;
-    for (uint k = 0u; k < trips; ++k) runs += 1u;
-    return runs == trips ? 1 : 0;
-}

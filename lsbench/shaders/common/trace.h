@@ -14,7 +14,7 @@
 // closest one; backends/structures/base.py: for_query).
 //
 // ---- Traversal in bounded slices (SLICED builds; issue 14) ------------------------------------
-// llvmpipe ends a shader invocation's loops after 65535 iterations in all (scene.h), and a real
+// llvmpipe ends a shader invocation's loops after 65535 iterations in all (geometry.h), and a real
 // GPU has a watchdog: a ray that meets millions of candidates cannot run to its end in one
 // launch. A SLICED kernel runs at most slice_budget loop iterations per ray (walk steps and
 // candidate tests together), stores where the ray stopped, and the host re-dispatches only the
@@ -76,7 +76,7 @@ INLINE Hit closer(Hit best, float t, int prim, float tmin) {
     return best;
 }
 
-// Hit id of a ray whose loops the driver cut short (the probe of scene.h); backends.trace fails
+// Hit id of a ray whose loops the driver cut short (the probe of geometry.h); backends.trace fails
 // the case naming the limit.
 #define LOOP_CUT_PRIM -2
 INLINE Hit cut_hit(CTX_PARAM Hit best) {
@@ -208,7 +208,7 @@ INLINE int trace_done(Trace tr, float t) { return tr.best.prim >= 0 ? 1 : 0; }
 INLINE int trace_done(Trace tr, float t) { return (tr.best.prim >= 0 && tr.best.t <= t) ? 1 : 0; }
 #endif
 
-// The hit to store: the counters written first (COUNT_WORK), then the loop probe (scene.h).
+// The hit to store: the counters written first (COUNT_WORK), then the loop probe (geometry.h).
 // SLICED: the probe first, and only an intact invocation stores anything: a suspended ray its
 // state (reporting SLICE_PENDING), a finished one its counters and hit.
 INLINE Hit trace_finish(CTX_PARAM Trace tr, uint ray) {
