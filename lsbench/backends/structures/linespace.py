@@ -408,16 +408,20 @@ def uniforms(geometry: GridGeometry, n: int) -> dict:
     return dict(geometry.uniforms(), ls_n=int(n), ls_shafts=shafts_per_cell(n), ls_eps=float(LS_EPS))
 
 
-def _count_fill_specs(device: Device, fill_from_bits: bool, item_counts: bool = True) -> tuple[KernelSpec, KernelSpec]:
+def _count_fill_specs(device: Device, fill_from_bits: bool, item_counts: bool = True,
+                      count_stats: bool = True) -> tuple[KernelSpec, KernelSpec]:
     """The count (always keeping its decisions as pair bits: the sets are found from them) and
     the fill: from the bits where those of all cells fit, else testing the pairs again. Without
     `item_counts` (the head lists' builds: ls_head_len counts a head's row) the count writes no
-    count per item and binds no ls_item_offsets."""
+    count per item and binds no ls_item_offsets; without `count_stats` (ls_cell_find_sets counts
+    them from the rows) it sums neither non-empty shafts nor candidates."""
     count = _with_test(device, LS_COUNT)
     buffers = count.buffers if item_counts else tuple(b for b in count.buffers if b.name != "ls_item_offsets")
     count = dataclasses.replace(count, buffers=buffers + (LS_PAIR_BITS_COUNT,)).with_defines(LS_PAIR_BITS=1)
     if not item_counts:
         count = count.with_defines(LS_NO_ITEM_COUNTS=1)
+    if not count_stats:
+        count = count.with_defines(LS_NO_COUNT_STATS=1)
     fill = LS_FILL_FROM_BITS if fill_from_bits else _with_test(device, LS_FILL)
     if device.serial_work_items:  # each step of the pair test a vector loop of its own (linespace.h: ls_run_meets)
         count, fill = _cull_runs(count), _cull_runs(fill)  # (the fill from pair bits tests nothing)
@@ -711,7 +715,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cull_margin = max(float(device.read(reach, np.float32).max()), LS_EPS) + LS_CULL_SLACK
         # ls_stats: words 0 (non-empty shafts of several chunks: ls_set_len, or ls_shaft_set with
         # head lists), 1 (cut loops), 2 (cells whose sets' probes the loop budget cut:
-        # ls_cell_find_sets) and 3 (ls_cell_find_sets' non-empty shafts of several chunks), then
+        # ls_cell_find_sets) and 3 (ls_cell_find_sets' non-empty shafts of several chunks; with
+        # cell_stats, of all, and 4, 5 all shafts' candidates, low and high), then
         # the count's LS_STAT_BUCKETS lines of 16 words (non-empty shafts, candidates low and high)
         stats_buf = temp("ls_stats", 64 * (1 + LS_STAT_BUCKETS))
         item_bases, ref_bases = (device.upload(name, values.astype(np.uint32)) for name, values in
@@ -757,9 +762,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # the other anyway (PoCL) and the head lists are built (linespace.h: ls_cell_find_sets_kernel)
         # The sets of a cell found by one work item, in shaft order (linespace.h: ls_cell_find_sets_kernel)
         by_cells = head_lists is not None and cells_fit_loop_budget(device, densest, per_cell)
+        # ... and where no loop budget can cut a cell, the stats from its rows, not from the count
+        cell_stats = by_cells and device.backend not in LS_LOOP_BUDGET
         if by_cells:
             group_bufs["ls_group_sets"] = temp("ls_group_sets", 4 * (group_cells + 1), zero=False)
             cell_find_sets = shaft_sets.bind(hashed(LS_CELL_FIND_SETS))
+            if cell_stats:
+                cell_find_sets = cell_find_sets.with_defines(LS_CELL_STATS=1)
         # Cells whose sets the loop budget kept from one invocation (ls_stats[2]), and the non-empty
         # shafts of several chunks that ls_cell_find_sets counted (ls_stats[3]) in groups it finished
         cut_cells, cells_non_empty, counted_before = 0, 0, 0
@@ -825,7 +834,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 device.dispatch(shaft_set_spec, (g1 - g0) * block_words, dict(group_bufs, ls_head_list=head_lists[-1][0]),
                                 bu)  # a work item per word of the cells' blocks
 
-        count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads)
+        count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads, count_stats=not cell_stats)
         count = count_spec if by_heads else items.bind(count_spec)
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
@@ -842,6 +851,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # shaft's items are summed where needed, ls_set_len and the fill). The sets' lists hold no
         # more, so below 2^32 - 1 no 32-bit offset of theirs can wrap.
         stat_words = device.read(stats_buf, np.uint32, 16 * (1 + LS_STAT_BUCKETS)).reshape(-1, 16).astype(np.int64)
+        if cell_stats:  # ls_cell_find_sets summed them (words 3-5 of the first line)
+            stat_words[1:] = 0
+            stat_words[1, 0], stat_words[1, 2], stat_words[1, 3] = stat_words[0, 3:6]
         total = int(stat_words[1:, 2].sum() + (stat_words[1:, 3].sum() << 32))
         if total >= UINT32_MAX:
             raise DeviceLimitError(
@@ -914,8 +926,6 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                     device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
                 shaft_pass(fill, c0, c1, fill_bufs, bu)
         first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
-        if by_cells and device.backend not in LS_LOOP_BUDGET:  # no group was found again
-            cells_non_empty = int(first_line[3])
         non_empty = int(first_line[0] + cells_non_empty + stat_words[1:, 0].sum())
         cut = int(first_line[1])
         if cut:

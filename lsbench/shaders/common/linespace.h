@@ -988,6 +988,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     // them), so that the cores' atomics seldom take a line from each other (PoCL, Sponza grid-ls
     // 64³ N=3: the count took 0.1-0.2 s less without these atomics, 0.05 s less with the buckets
     // than with one line for all).
+#ifndef LS_NO_COUNT_STATS
+#ifndef LS_NO_COUNT_STATS  // ls_cell_find_sets_kernel counts them (LS_CELL_STATS)
     uint stat = 16u * (1u + ((gid >> 3u) & (LS_STAT_BUCKETS - 1u)));
     if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[stat], non_empty);
     if (sum_lo > 0u) {
@@ -995,6 +997,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         sum_hi += before + sum_lo < before ? 1u : 0u;
     }
     if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[stat + 3u], sum_hi);
+#endif
+#endif
 #endif
 #ifndef KERNEL_ls_fill
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[1], 1u);  // the driver cut loops: geometry.h
@@ -1184,13 +1188,18 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
 // minimum afterwards). (2) ls_heads: that member is the set's first shaft (its "head"); (3)
 // ls_shaft_set: a shaft's set index within its cell = the heads before its head, so sets are
 // numbered in the order of their first shaft.
-INLINE uint ls_row_hash(CTX_PARAM uint start, uint len) {
-    uint h = 2166136261u;  // FNV-1a over the row's words
-    for (uint k = 0u; 32u * k < len; ++k) h = (h ^ ls_row_word(CTX_ARG start, len, k)) * 16777619u;
+#define LS_HASH_SEED 2166136261u  // FNV-1a over the row's words
+INLINE uint ls_hash_word(uint h, uint w) { return (h ^ w) * 16777619u; }
+INLINE uint ls_hash_mask(uint h) {
 #ifdef LS_HASH_MASK
     h &= LS_HASH_MASK;  // tests: a hash that collides, so only the word-by-word compare tells sets apart
 #endif
     return h;
+}
+INLINE uint ls_row_hash(CTX_PARAM uint start, uint len) {
+    uint h = LS_HASH_SEED;
+    for (uint k = 0u; 32u * k < len; ++k) h = ls_hash_word(h, ls_row_word(CTX_ARG start, len, k));
+    return ls_hash_mask(h);
 }
 
 INLINE int ls_rows_equal(CTX_PARAM uint start_a, uint start_b, uint len) {
@@ -1245,7 +1254,9 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
 // ls_set_slot (the cell's shafts from c x 15 N^4) for the shafts that join it and for
 // ls_cell_head_list_kernel, and its set count in ls_group_sets[c] (scanned next). A cell of
 // several chunks has its non-empty shafts counted here from their rows (stats, ls_stats[3]), as
-// ls_shaft_set_kernel does. All of a cell's probes run in one invocation: where a driver's loop
+// ls_shaft_set_kernel does; where no loop budget can cut a cell (LS_CELL_STATS: PoCL) every
+// shaft's are, and the candidates of all its shafts' lists (ls_stats[4], [5]), which the count
+// then leaves out (LS_NO_COUNT_STATS: its atomics were 0.1 s of PoCL's 3.6 s, Sponza grid-ls 64³ N=3). All of a cell's probes run in one invocation: where a driver's loop
 // budget cut them (geometry.h), ls_stats[2] counts the cell and the host finds that group's sets
 // again by the passes per shaft (linespace.py).
 INLINE void ls_cell_find_sets_kernel(CTX_PARAM uint c) {
@@ -1266,15 +1277,26 @@ INLINE void ls_cell_find_sets_kernel(CTX_PARAM uint c) {
     for (uint k = 0u; k < size; ++k) V(ls_set_table)[region + k] = 0u;
     uint sets = 0u;
     uint non_empty = 0u;
+    uint sum_lo = 0u;  // LS_CELL_STATS: the cell's candidates in all its shafts' lists, as two words
+    uint sum_hi = 0u;
     uint word = 0u;
     for (uint s = 0u; s < shafts; ++s) {
         uint start = start0 + s * len;
-        if (len > V(ls_chunk)) {  // several count chunks (a driver's loop budget: not PoCL's)
-            uint any = 0u;
-            for (uint k = 0u; 32u * k < len && any == 0u; ++k) any = ls_row_word(CTX_ARG start, len, k);
-            non_empty += any != 0u ? 1u : 0u;
+        uint h = LS_HASH_SEED;
+        uint met = 0u;  // the shaft's candidates
+        for (uint k = 0u; 32u * k < len; ++k) {
+            uint w = ls_row_word(CTX_ARG start, len, k);
+            h = ls_hash_word(h, w);
+            met += POPCOUNT(w);
         }
-        uint slot = MUL_HI(ls_row_hash(CTX_ARG start, len), size);
+#ifdef LS_CELL_STATS
+        non_empty += met != 0u ? 1u : 0u;
+        sum_hi += sum_lo + met < sum_lo ? 1u : 0u;
+        sum_lo += met;
+#else
+        non_empty += len > V(ls_chunk) && met != 0u ? 1u : 0u;  // several count chunks (a loop budget)
+#endif
+        uint slot = MUL_HI(ls_hash_mask(h), size);
         uint index = sets;
         // Fewer sets than shafts, in 2 x 15 N^4 slots: an empty slot comes within `size` probes.
         for (uint probe = 0u; probe < size; ++probe) {
@@ -1300,6 +1322,13 @@ INLINE void ls_cell_find_sets_kernel(CTX_PARAM uint c) {
     V(ls_group_sets)[c] = sets;
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(ls_stats)[2], 1u);
     if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[3], non_empty);  // the host keeps it where no cell was cut
+#ifdef LS_CELL_STATS
+    if (sum_lo > 0u) {
+        uint before = ATOMIC_ADD(V(ls_stats)[4], sum_lo);
+        sum_hi += before + sum_lo < before ? 1u : 0u;
+    }
+    if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[5], sum_hi);
+#endif
 }
 #endif
 
