@@ -379,6 +379,37 @@ def test_sets_found_again_where_the_loop_budget_cuts_a_cell(device, monkeypatch)
     built.release()
 
 
+@pytest.mark.parametrize("structure", ["grid-ls", "esvo-ls"])
+def test_pair_bits_split_over_buffers(device, monkeypatch, structure):
+    """All cells' pair bits kept over 3 or 4 buffers where one would pass the driver's per-buffer
+    limit (llvmpipe: 128 MiB): the count's ORs, the rows read across a buffer boundary, the sets
+    and the fill from the bits give the one-buffer build's lists and layout."""
+    scene, res, n = random_scene(), (3, 3, 2) if structure == "grid-ls" else (4, 4, 4), 2
+    whole = backends.build(device, structure, scene, BuildParams(resolution=res, ls_n=n))
+    assert whole.stats["ls_pair_bits_buffers"] == 1 and whole.stats["ls_pair_bits"], whole.stats
+    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole.release()
+    split_array = linespace.split_array
+
+    def small_bits(d, base, macro, entries, limit=None):  # a chunk of a quarter to half of the bits
+        if base == "ls_pair_bits":
+            limit = 4 << max(0, (int(entries) - 1).bit_length() - 2)
+        return split_array(d, base, macro, entries, limit)
+
+    monkeypatch.setattr(linespace, "split_array", small_bits)
+    built = backends.build(device, structure, scene, BuildParams(resolution=res, ls_n=n))
+    st = built.stats
+    assert st["ls_pair_bits"] and st["ls_head_lists"] and st["ls_pair_bits_buffers"] in (3, 4), st
+    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(offs, whole_lists[1])
+    for lo, hi in zip(offs[:-1], offs[1:]):
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    if structure == "grid-ls":  # (the octrees' lists against their reference: test_octree_ls.py)
+        assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    built.release()
+
+
 def test_cells_fit_the_loop_budget():
     """One work item finds a cell's sets where clearing its table and a hash and one compare per
     shaft take at most half the driver's loop budget (the rest for further probes)."""

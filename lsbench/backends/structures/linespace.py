@@ -135,7 +135,8 @@ LS_MASK_BYTES = 64 * 2**20
 LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 float4)
 # Most bytes the count's decisions (one bit per shaft and candidate) may take. The sets are found
 # from them; where those of all cells do not fit, the cells go in batches whose bits do, each
-# batch's sets are found while its bits are there, and the fill tests the pairs again.
+# batch's sets are found while its bits are there, and the fill tests the pairs again. Over
+# several buffers where the driver's per-buffer limit is less (SplitArray: llvmpipe's 128 MiB).
 LS_PAIR_BITS_BYTES = 256 * 2**20
 # Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the slots
 # and heads 4.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
@@ -372,6 +373,18 @@ class SplitArray:
                 device.release(b)
             raise
         return made
+
+    def fill_zero(self, device: Device, bufs: dict[str, DeviceBuffer], entries: int) -> None:
+        """Zero the array's first `entries` values."""
+        for i, name in enumerate(self.names):
+            count = min(entries - (i << self.shift), self.chunk_entries(i))
+            if count > 0:
+                device.fill_zero(bufs[name], 4 * count)
+
+
+def split_chunk_bytes(device: Device) -> int:
+    """Bytes of one buffer of a split array on this device (a power of two entries)."""
+    return 4 << ((device.max_buffer_bytes // 4).bit_length() - 1)
 
 
 def split_array(device: Device, base: str, macro: str, entries: int, limit: int | None = None) -> SplitArray:
@@ -673,8 +686,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         raise DeviceLimitError(
             f"{plan.items} count/fill work items (shafts x chunks of {plan.chunk} candidates) overflow "
             "32-bit item indices (uint, 2^32 - 1)")
-    # The pair bits of all cells where they fit (the fill then reads them), else of one batch.
-    bits_limit = min(LS_PAIR_BITS_BYTES, device.max_buffer_bytes)
+    # The pair bits of all cells where they fit (the fill then reads them), else of one batch;
+    # over as many buffers as the driver's per-buffer limit asks, up to LS_MAX_CHUNKS.
+    bits_limit = min(LS_PAIR_BITS_BYTES, LS_MAX_CHUNKS * split_chunk_bytes(device))
     pairs = int(plan.ref_bases[-1]) * per_cell
     all_bits = pairs < UINT32_MAX and 4 * (-(-pairs // 32)) <= bits_limit
     if all_bits:
@@ -726,10 +740,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # + LS_RUN_LANES words: the count's cull reads whole vector blocks past a run (linespace.h ls_run_meets)
         masks = temp("ls_masks", 4 * (most_refs * patches + LS_RUN_LANES), zero=False)
         local_tris = temp("ls_local_tris", LOCAL_TRI_BYTES * most_refs, zero=False)
-        bits = temp("ls_pair_bits", 4 * (-(-pairs // 32)), zero=all_bits)
+        bits = split_array(device, "ls_pair_bits", "LS_BITS", -(-pairs // 32))
+        bits_bufs = bits.alloc(device, zero=all_bits)
+        temps.extend(bits_bufs.values())
         cell_bufs = dict(scene_buffers, ls_planes=planes, ls_edges=edges, ls_cell_boxes=cells.boxes, ls_cell_ranges=cells.ranges,
                          ls_cell_tris=cells.tris, ls_item_bases=item_bases, ls_ref_bases=ref_bases, ls_masks=masks,
-                         ls_local_tris=local_tris, ls_pair_bits=bits)
+                         ls_local_tris=local_tris, **bits_bufs)
         # Builds with all cells' bits: lists of each group's heads (ls_head_len, ls_head_fill), and
         # no count per item (the heads' rows hold their counts)
         by_heads = all_bits and head_rows_fit(device, densest)
@@ -746,7 +762,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         shaft_set_bufs = shaft_sets.alloc(device, zero=False)
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
-        group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, ls_pair_bits=bits,
+        group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, **bits_bufs,
                           ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
@@ -755,9 +771,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def hashed(spec: KernelSpec) -> KernelSpec:  # tests: a hash that collides (LS_HASH_MASK)
             return spec if LS_HASH_MASK == 0xFFFFFFFF else spec.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
 
-        insert_spec = hashed(LS_INSERT)
+        insert_spec = bits.bind(hashed(LS_INSERT))
         head_lists: list[tuple[DeviceBuffer, int, int]] = [] if by_heads else None
-        shaft_set_spec = shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET)
+        shaft_set_spec = bits.bind(shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET))
         # The sets of a cell found by one work item, in shaft order, where work items run one after
         # the other anyway (PoCL) and the head lists are built (linespace.h: ls_cell_find_sets_kernel)
         # The sets of a cell found by one work item, in shaft order (linespace.h: ls_cell_find_sets_kernel)
@@ -766,7 +782,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cell_stats = by_cells and device.backend not in LS_LOOP_BUDGET
         if by_cells:
             group_bufs["ls_group_sets"] = temp("ls_group_sets", 4 * (group_cells + 1), zero=False)
-            cell_find_sets = shaft_sets.bind(hashed(LS_CELL_FIND_SETS))
+            cell_find_sets = bits.bind(shaft_sets.bind(hashed(LS_CELL_FIND_SETS)))
             if cell_stats:
                 cell_find_sets = cell_find_sets.with_defines(LS_CELL_STATS=1)
         # Cells whose sets the loop budget kept from one invocation (ls_stats[2]), and the non-empty
@@ -835,13 +851,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                                 bu)  # a work item per word of the cells' blocks
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads, count_stats=not cell_stats)
-        count = count_spec if by_heads else items.bind(count_spec)
+        count = bits.bind(count_spec if by_heads else items.bind(count_spec))
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
             device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
-                device.fill_zero(bits, 4 * -(-plan.batch_refs(c0, c1) * per_cell // 32))
+                bits.fill_zero(device, bits_bufs, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
             if not all_bits:  # this batch's sets, while its bits are there
                 find_sets(c0, c1, bits_base)
@@ -878,7 +894,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             listed = sum(h for _, _, h in head_lists)
             if listed != n_sets:
                 raise RuntimeError(f"Line Space build: the groups' heads ({listed}) differ from the cells' sets ({n_sets})")
-            head_len = set_lens.bind(LS_HEAD_LEN)
+            head_len = bits.bind(set_lens.bind(LS_HEAD_LEN))
             for head_list, base, heads in head_lists:
                 device.dispatch(head_len, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs),
                                 dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
@@ -912,12 +928,12 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         tris_bufs = candidates.alloc(device, zero=id_bits == 16)
         kept.extend(tris_bufs.values())
         if head_lists is not None:
-            head_fill = candidates.bind(set_lens.bind(LS_HEAD_FILL.with_defines(LS_IDS16=1) if id_bits == 16 else LS_HEAD_FILL))
+            head_fill = bits.bind(candidates.bind(set_lens.bind(LS_HEAD_FILL.with_defines(LS_IDS16=1) if id_bits == 16 else LS_HEAD_FILL)))
             for head_list, base, heads in head_lists:
                 device.dispatch(head_fill, heads, dict(cell_bufs, ls_head_list=head_list, **set_len_bufs, **tris_bufs),
                                 dict(u, ls_head_base=base, ls_bits_base=0))  # all cells' bits
         else:
-            fill = candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec)))
+            fill = bits.bind(candidates.bind(set_lens.bind(items.bind(fill_spec.with_defines(LS_IDS16=1) if id_bits == 16 else fill_spec))))
             fill_bufs = dict(cell_bufs, **item_bufs, **set_len_bufs, **tris_bufs)
             masks_ready = all_bits or len(plan.batches) == 1
             for c0, c1 in plan.batches:
@@ -960,6 +976,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_work_items": plan.items,
         "ls_cell_batches": len(plan.batches),
         "ls_pair_bits": all_bits,
+        "ls_pair_bits_buffers": bits.chunks,
         "ls_head_lists": head_lists is not None,  # set lengths and fill over the heads' rows
         "ls_sets_by_cells": by_cells,  # a cell's sets found by one work item (ls_cell_find_sets)
         "ls_sets_cells_cut": cut_cells,  # ... but the loop budget cut these, so their groups went per shaft

@@ -73,6 +73,12 @@
 #define LS_SET_LEN(i) V(ls_set_lens)[i]
 #define LS_SET_LEN_STORE(i, v) V(ls_set_lens)[i] = (v)
 #endif
+// The count's pair bits (LS_PAIR_BITS below), word i: split the same way where they pass the
+// driver's per-buffer limit (llvmpipe: 128 MiB; linespace.py keeps all cells' bits up to 256 MiB).
+#ifndef LS_BITS
+#define LS_BITS(i) V(ls_pair_bits)[i]
+#define LS_BITS_OR(i, v) ATOMIC_OR(V(ls_pair_bits)[i], v)
+#endif
 // The item of a shaft that is not its set's first: the fill skips it (ls_set_len_kernel).
 #define LS_SKIP 0xffffffffu
 #define LS_STAT_BUCKETS 32u  // the count's stats: words 16 (k + 1) + {0, 2, 3} of ls_stats for bucket k (linespace.py)
@@ -768,8 +774,8 @@ INLINE uint ls_row_word(CTX_PARAM uint start, uint len, uint k) {
     uint pos = start + 32u * k;
     uint bits = min(len - 32u * k, 32u);
     uint off = pos & 31u;
-    uint w = V(ls_pair_bits)[pos >> 5u] >> off;
-    if (off != 0u && off + bits > 32u) w |= V(ls_pair_bits)[(pos >> 5u) + 1u] << (32u - off);
+    uint w = LS_BITS(pos >> 5u) >> off;
+    if (off != 0u && off + bits > 32u) w |= LS_BITS((pos >> 5u) + 1u) << (32u - off);
     return bits < 32u ? (w & ((1u << bits) - 1u)) : w;
 }
 #endif
@@ -939,9 +945,9 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef LS_PAIR_BITS
             // the run's bits start at bit + k0: one or two words, which neighbouring items share
             uint at = bit + k0;
-            if (met != 0u) ATOMIC_OR(V(ls_pair_bits)[at >> 5u], met << (at & 31u));
+            if (met != 0u) LS_BITS_OR(at >> 5u, met << (at & 31u));
             if ((at & 31u) != 0u && (met >> (32u - (at & 31u))) != 0u) {
-                ATOMIC_OR(V(ls_pair_bits)[(at >> 5u) + 1u], met >> (32u - (at & 31u)));
+                LS_BITS_OR((at >> 5u) + 1u, met >> (32u - (at & 31u)));
             }
 #endif
         }
@@ -964,7 +970,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef LS_PAIR_BITS
             if (meets != 0) word |= 1u << (bit & 31u);
             if ((bit & 31u) == 31u || i + 1u == end_i) {  // word full, or the chunk's last: neighbours share it
-                if (word != 0u) ATOMIC_OR(V(ls_pair_bits)[bit >> 5u], word);
+                if (word != 0u) LS_BITS_OR(bit >> 5u, word);
                 word = 0u;
             }
             bit += 1u;
