@@ -1057,11 +1057,16 @@ INLINE float3 ls_face_terms(float3 ax, int axis, float side) {
     return make_float3(comp3(ax, (axis + 1) % 3), comp3(ax, (axis + 2) % 3), comp3(ax, axis) * side);
 }
 
-// Cull bits of an axis (face terms f, thresholds r) for the patch u x v: ls_patch_interval's
-// arithmetic on the hoisted terms (the same floats, so the same bits).
-INLINE uint ls_axis_bits(float3 f, float2 r, float2 u, float2 v, uint bit) {
-    float lo = f.z + min(f.x * u.x, f.x * u.y) + min(f.y * v.x, f.y * v.y);
-    float hi = f.z + max(f.x * u.x, f.x * u.y) + max(f.y * v.x, f.y * v.y);
+// An axis' v terms (face terms f) for a row of patches v: its least and greatest f.y v.
+INLINE float2 ls_axis_v(float3 f, float2 v) {
+    return make_float2(min(f.y * v.x, f.y * v.y), max(f.y * v.x, f.y * v.y));
+}
+
+// Cull bits of an axis (face terms f, the row's v terms fv, thresholds r) for the patch u x v:
+// ls_patch_interval's arithmetic on the hoisted terms (the same floats, so the same bits).
+INLINE uint ls_axis_bits(float3 f, float2 fv, float2 r, float2 u, uint bit) {
+    float lo = f.z + min(f.x * u.x, f.x * u.y) + fv.x;
+    float hi = f.z + max(f.x * u.x, f.x * u.y) + fv.y;
     return ((hi < r.x ? 1u : 0u) | (lo > r.y ? 2u : 0u)) << bit;
 }
 
@@ -1152,26 +1157,34 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
         float3 f2 = ls_face_terms(x2, axis, side), f3 = ls_face_terms(x3, axis, side), f4 = ls_face_terms(x4, axis, side);
         float3 f5 = ls_face_terms(x5, axis, side), f6 = ls_face_terms(x6, axis, side), f7 = ls_face_terms(x7, axis, side);
         float3 f8 = ls_face_terms(x8, axis, side);
-        for (uint p = 0u; p < n2; ++p) {
-            float pu = F32(I32(p % n)), pv = F32(I32(p / n));
-            float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
+        // A row of patches (v) at a time: its axes' v terms once for the row's N patches.
+        for (uint pj = 0u; pj < n; ++pj) {
+            float pv = F32(I32(pj));
             float2 v = make_float2(pv / fn, (pv + 1.0f) / fn);
-            uint bits = ls_axis_bits(fx, rx, u, v, 0u) | ls_axis_bits(fy, ry, u, v, 2u) | ls_axis_bits(fz, rz, u, v, 4u)
-                      | ls_axis_bits(fnrm, rn, u, v, 6u) | ls_axis_bits(f0, r0, u, v, 8u) | ls_axis_bits(f1, r1, u, v, 10u)
-                      | ls_axis_bits(f2, r2, u, v, 12u) | ls_axis_bits(f3, r3, u, v, 14u) | ls_axis_bits(f4, r4, u, v, 16u)
-                      | ls_axis_bits(f5, r5, u, v, 18u) | ls_axis_bits(f6, r6, u, v, 20u) | ls_axis_bits(f7, r7, u, v, 22u)
-                      | ls_axis_bits(f8, r8, u, v, 24u);
-            if (cuts != 0) {
-                float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
-                r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
-                if (r.x <= r.y) bits |= LS_MEETS_PATCH;
+            float2 vx = ls_axis_v(fx, v), vy = ls_axis_v(fy, v), vz = ls_axis_v(fz, v), vn = ls_axis_v(fnrm, v);
+            float2 v0 = ls_axis_v(f0, v), v1 = ls_axis_v(f1, v), v2 = ls_axis_v(f2, v), v3 = ls_axis_v(f3, v);
+            float2 v4 = ls_axis_v(f4, v), v5 = ls_axis_v(f5, v), v6 = ls_axis_v(f6, v), v7 = ls_axis_v(f7, v);
+            float2 v8 = ls_axis_v(f8, v);
+            for (uint pi = 0u; pi < n; ++pi) {
+                float pu = F32(I32(pi));
+                float2 u = make_float2(pu / fn, (pu + 1.0f) / fn);
+                uint bits = ls_axis_bits(fx, vx, rx, u, 0u) | ls_axis_bits(fy, vy, ry, u, 2u) | ls_axis_bits(fz, vz, rz, u, 4u)
+                          | ls_axis_bits(fnrm, vn, rn, u, 6u) | ls_axis_bits(f0, v0, r0, u, 8u) | ls_axis_bits(f1, v1, r1, u, 10u)
+                          | ls_axis_bits(f2, v2, r2, u, 12u) | ls_axis_bits(f3, v3, r3, u, 14u) | ls_axis_bits(f4, v4, r4, u, 16u)
+                          | ls_axis_bits(f5, v5, r5, u, 18u) | ls_axis_bits(f6, v6, r6, u, 20u) | ls_axis_bits(f7, v7, r7, u, 22u)
+                          | ls_axis_bits(f8, v8, r8, u, 24u);
+                if (cuts != 0) {
+                    float2 r = ls_clip_1d(cut0.x, cut1.x, u.x, u.y, make_float2(0.0f, 1.0f));
+                    r = ls_clip_1d(cut0.y, cut1.y, v.x, v.y, r);
+                    if (r.x <= r.y) bits |= LS_MEETS_PATCH;
+                }
+                if (covers != 0) {
+                    float2 h = ls_patch_interval(nrm, axis, side, u, v);
+                    if (h.x > nd) bits |= LS_ABOVE_PLANE;
+                    if (h.y < nd) bits |= LS_BELOW_PLANE;
+                }
+                V(ls_masks)[row + (pj * n + pi) * refs] = bits;
             }
-            if (covers != 0) {
-                float2 h = ls_patch_interval(nrm, axis, side, u, v);
-                if (h.x > nd) bits |= LS_ABOVE_PLANE;
-                if (h.y < nd) bits |= LS_BELOW_PLANE;
-            }
-            V(ls_masks)[row + p * refs] = bits;
         }
     }
 }
