@@ -319,7 +319,8 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     if split.startswith("chunks"):
         assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > 2 * st["shafts"], st
         assert st["ls_head_lists"] == (split != "chunks-per-shaft"), st
-        assert st["ls_sets_by_cells"] == (split == "chunks-by-cells") and st["ls_sets_cells_cut"] == 0, st
+        assert st["ls_sets_by_cells"] == (st["ls_set_groups"] if split == "chunks-by-cells" else 0), st
+        assert st["ls_sets_cells_cut"] == 0, st
     elif split == "groups":
         assert st["ls_work_items"] == st["shafts"] and st["linespace_cells"] > 4, st
     else:
@@ -360,14 +361,16 @@ def test_sets_found_again_where_the_loop_budget_cuts_a_cell(device, monkeypatch)
     shaft, so the lists, the layout and the stats are the full hash's; PoCL has no budget."""
     scene, res, n = random_scene(), (2, 2, 2), 3
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
-    assert whole.stats["ls_sets_by_cells"] and whole.stats["ls_sets_cells_cut"] == 0, whole.stats
+    assert whole.stats["ls_sets_by_cells"] == whole.stats["ls_set_groups"] == 1, whole.stats
+    assert whole.stats["ls_sets_cells_cut"] == 0, whole.stats
     whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
     whole_stats = whole.stats
     whole.release()
     monkeypatch.setattr(linespace, "LS_HASH_MASK", 0)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     st = built.stats
-    assert st["ls_sets_by_cells"] and (st["ls_sets_cells_cut"] > 0) == (device.backend == "glsl"), st
+    cut = device.backend == "glsl"
+    assert (st["ls_sets_cells_cut"] > 0) == cut and st["ls_sets_by_cells"] == (0 if cut else 1), st
     for key in ("non_empty_shafts", "candidate_references", "ls_sets", "ls_set_references"):
         assert st[key] == whole_stats[key], key
     np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
@@ -407,6 +410,32 @@ def test_pair_bits_split_over_buffers(device, monkeypatch, structure):
         assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
     if structure == "grid-ls":  # (the octrees' lists against their reference: test_octree_ls.py)
         assert_reference_lists(device, scene, res, n, exact_kind(device), built)
+    built.release()
+
+
+def test_sets_by_cells_in_the_groups_that_fit(device, monkeypatch):
+    """Groups of cells whose densest cell fits the loop budget find their sets a cell per work
+    item, the others per shaft, in one build (a group per cell here; a budget that half the cells
+    pass): the lists and layout are those of the build with every group by cells."""
+    scene, res, n = random_scene(), (3, 3, 2), 2
+    whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    lists = voxel_lists(device, scene, res)
+    lens = [len(lists[v]) for v in np.flatnonzero(np.diff(whole_lists[0]))]  # the Line Space cells' candidates
+    whole.release()
+    half = sorted(lens)[len(lens) // 2]
+    monkeypatch.setattr(linespace, "LS_GROUP_SHAFTS", 15 * n**4)  # a cell per group
+    monkeypatch.setattr(linespace, "cells_fit_loop_budget", lambda d, densest, per_cell: densest < half)
+    built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
+    st = built.stats
+    assert st["ls_set_groups"] == len(lens) and 0 < st["ls_sets_by_cells"] < len(lens), st
+    assert st["ls_sets_by_cells"] == sum(1 for k in lens if k < half), st
+    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
+    ls_ids, offs, cand = read_linespaces(built)
+    np.testing.assert_array_equal(offs, whole_lists[1])
+    for lo, hi in zip(offs[:-1], offs[1:]):
+        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_reference_lists(device, scene, res, n, exact_kind(device), built)
     built.release()
 
 

@@ -502,9 +502,9 @@ def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
 def cells_fit_loop_budget(device: Device, densest: int, per_cell: int) -> bool:
     """Whether one invocation may find a cell's sets (linespace.h: ls_cell_find_sets_kernel): within
     the driver's loop budget it clears the cell's table (2 x 15 N^4 slots) and, per shaft, hashes
-    its row and compares it with one slot's (the words of the densest row each), with room to spare
-    for the probes past the first one. Where more probes than that spend the budget, the kernel
-    says so and that group's sets are found by the passes per shaft."""
+    its row and compares it with two slots' rows (the words of the group's densest row each),
+    in half the budget. Where more probes than that spend it, the kernel says so and that group's
+    sets are found by the passes per shaft."""
     budget = LS_LOOP_BUDGET.get(device.backend)
     words = -(-densest // 32)
     return budget is None or 2 * per_cell + per_cell * (2 + 3 * words) <= budget // 2
@@ -774,10 +774,15 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         insert_spec = bits.bind(hashed(LS_INSERT))
         head_lists: list[tuple[DeviceBuffer, int, int]] = [] if by_heads else None
         shaft_set_spec = bits.bind(shaft_sets.bind(LS_SHAFT_SET_LIST if head_lists is not None else LS_SHAFT_SET))
-        # The sets of a cell found by one work item, in shaft order, where work items run one after
-        # the other anyway (PoCL) and the head lists are built (linespace.h: ls_cell_find_sets_kernel)
-        # The sets of a cell found by one work item, in shaft order (linespace.h: ls_cell_find_sets_kernel)
-        by_cells = head_lists is not None and cells_fit_loop_budget(device, densest, per_cell)
+        # The sets of a cell found by one work item, in shaft order (linespace.h:
+        # ls_cell_find_sets_kernel), in the head lists' builds, in each group whose densest cell fits
+        # the driver's loop budget; the other groups by the passes per shaft.
+        cell_lens = ranges[:, 1].astype(np.int64) - ranges[:, 0]
+
+        def group_by_cells(g0: int, g1: int) -> bool:
+            return head_lists is not None and cells_fit_loop_budget(device, int(cell_lens[g0:g1].max()), per_cell)
+
+        by_cells = any(group_by_cells(g0, min(g0 + group_cells, cells.count)) for g0 in range(0, cells.count, group_cells))
         # ... and where no loop budget can cut a cell, the stats from its rows, not from the count
         cell_stats = by_cells and device.backend not in LS_LOOP_BUDGET
         if by_cells:
@@ -788,6 +793,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # Cells whose sets the loop budget kept from one invocation (ls_stats[2]), and the non-empty
         # shafts of several chunks that ls_cell_find_sets counted (ls_stats[3]) in groups it finished
         cut_cells, cells_non_empty, counted_before = 0, 0, 0
+        groups_by_cells, groups = 0, 0
 
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
@@ -815,12 +821,13 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 device.release(group_buf)
 
         def find_sets(c0: int, c1: int, bits_base: int) -> None:
-            nonlocal cut_cells, cells_non_empty, counted_before
+            nonlocal cut_cells, cells_non_empty, counted_before, groups_by_cells, groups
             for g0 in range(c0, c1, group_cells):
                 g1 = min(g0 + group_cells, c1)
                 shafts = (g1 - g0) * per_cell
                 bu = batch_uniforms(g0, g1, bits_base)
-                if by_cells:  # each cell clears its own table
+                groups += 1
+                if group_by_cells(g0, g1):  # each cell clears its own table
                     device.dispatch(cell_find_sets, g1 - g0, group_bufs, bu)
                     # Where a driver has a loop budget, each group's words 2 and 3, so that a group
                     # some cell of which was cut is found again below and counted there only
@@ -829,6 +836,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                     group_counted, counted_before = counted - counted_before, counted
                     if cut == cut_cells:
                         cells_non_empty += group_counted
+                        groups_by_cells += 1
                         heads = device.scan_in_place(group_bufs["ls_group_sets"], g1 - g0 + 1)  # sets of the cells before
                         base = head_lists[-1][1] + head_lists[-1][2] if head_lists else 0  # heads of the groups before
                         head_lists.append((temp("ls_head_list", 4 * heads, zero=False), base, heads))
@@ -978,8 +986,9 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         "ls_pair_bits": all_bits,
         "ls_pair_bits_buffers": bits.chunks,
         "ls_head_lists": head_lists is not None,  # set lengths and fill over the heads' rows
-        "ls_sets_by_cells": by_cells,  # a cell's sets found by one work item (ls_cell_find_sets)
-        "ls_sets_cells_cut": cut_cells,  # ... but the loop budget cut these, so their groups went per shaft
+        "ls_set_groups": groups,  # groups of cells whose sets were found together
+        "ls_sets_by_cells": groups_by_cells,  # ... a cell's by one work item (ls_cell_find_sets)
+        "ls_sets_cells_cut": cut_cells,  # ... whose loops the budget cut, so their groups went per shaft
     }
     splits = tuple(a for a in (offsets, candidates) if a.chunks > 1)
     return LineSpaces(n, per_cell, dict(**offset_bufs, **tris_bufs), stats, splits, id_bits)
