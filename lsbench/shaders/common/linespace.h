@@ -605,16 +605,30 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 // pushed volume, and the edges test would accept it by the segments from that corner (at t = 0),
 // so the decision is the same and the pair skips the edge clipping (Sponza 64³ N=3: 37.7 M of the
 // 73.5 M pairs that the triangle edges accepted).
-INLINE int ls_facet_verdict(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
-    int lo = 2, hi = 0;
-    float wa = -INF_F, wb = -INF_F, wc = -INF_F;
-    LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
-    LS_FACET_STEP(p4) LS_FACET_STEP(p5) LS_FACET_STEP(p6) LS_FACET_STEP(p7)
+// A shaft's hull has 5, 6 or 8 facets (N = 3: 252, 675 and 288 of the 1,215 shafts); the slots
+// past them hold planes every point is inside (ls_planes_kernel), which decide nothing. Where a
+// work item is one shaft (LS_CULL_RUNS) the pair loops run the variant for its facets only
+// (ls_facet_verdict5 / 6, ls_edges_in_shaft5 / 6: the same decisions, fewer planes; Sponza grid-ls
+// 64³ N=3 PoCL ls_count 3.5 -> 3.2 s, docs/linespace-build.md).
 #ifdef LS_EXACT_EDGES
-    if (lo != 0 && min(wa, min(wb, wc)) <= 0.0f) return 1;
+#define LS_FACET_CORNER_IN if (lo != 0 && min(wa, min(wb, wc)) <= 0.0f) return 1;
+#else
+#define LS_FACET_CORNER_IN
 #endif
-    return lo == 0 ? 0 : (hi == 1 ? 1 : 2);
-}
+#define LS_FACET_VERDICT(name, steps) INLINE int name(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) { \
+    int lo = 2, hi = 0; \
+    float wa = -INF_F, wb = -INF_F, wc = -INF_F; \
+    steps \
+    LS_FACET_CORNER_IN \
+    return lo == 0 ? 0 : (hi == 1 ? 1 : 2); }
+LS_FACET_VERDICT(ls_facet_verdict, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
+                 LS_FACET_STEP(p4) LS_FACET_STEP(p5) LS_FACET_STEP(p6) LS_FACET_STEP(p7))
+#ifdef LS_CULL_RUNS
+LS_FACET_VERDICT(ls_facet_verdict6, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
+                 LS_FACET_STEP(p4) LS_FACET_STEP(p5))
+LS_FACET_VERDICT(ls_facet_verdict5, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
+                 LS_FACET_STEP(p4))
+#endif
 
 // 1 when some point of the segment (x0, y0, z0) -> (x1, y1, z1) lies in the shaft volume with its
 // facet planes pushed out by m (m = 0: the shaft itself, which the triangle then meets; m = eps:
@@ -626,27 +640,39 @@ INLINE int ls_facet_verdict(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
     if ((da > 0.0f) != (db > 0.0f)) { \
         float t = da / (da - db); \
         if (da > 0.0f) r0 = max(r0, t); else r1 = min(r1, t); } }
-INLINE int ls_segment_in_shaft(LS_PLANE_PARAMS, float x0, float y0, float z0, float x1, float y1, float z1, float m) {
-    float r0 = 0.0f, r1 = 1.0f;
-    bool gone = false;
-    LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
-    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5) LS_CLIP_STEP(p6) LS_CLIP_STEP(p7)
-    return !gone && r0 <= r1 ? 1 : 0;
-}
+#define LS_SEGMENT_IN_SHAFT(name, steps) \
+    INLINE int name(LS_PLANE_PARAMS, float x0, float y0, float z0, float x1, float y1, float z1, float m) { \
+    float r0 = 0.0f, r1 = 1.0f; \
+    bool gone = false; \
+    steps \
+    return !gone && r0 <= r1 ? 1 : 0; }
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
+                    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5) LS_CLIP_STEP(p6) LS_CLIP_STEP(p7))
+#ifdef LS_CULL_RUNS
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft6, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
+                    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5))
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft5, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
+                    LS_CLIP_STEP(p4))
+#endif
 
 // After the facet planes left it undecided: with LS_EXACT_EDGES the exact test's first half (a
 // triangle edge in the volume pushed out by eps), else step 2's last certain case (an edge in the
 // shaft itself). 1 decides "meets"; 0 leaves the pair to the exact test.
-INLINE int ls_edges_in_shaft(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) {
 #ifdef LS_EXACT_EDGES
-    float m = eps;
+#define LS_EDGE_MARGIN eps
 #else
-    float m = 0.0f;
+#define LS_EDGE_MARGIN 0.0f
 #endif
-    return (ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, ax, ay, az, bx, by, bz, m) != 0 ||
-            ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, bx, by, bz, cx, cy, cz, m) != 0 ||
-            ls_segment_in_shaft(p0, p1, p2, p3, p4, p5, p6, p7, cx, cy, cz, ax, ay, az, m) != 0) ? 1 : 0;
-}
+#define LS_EDGES_IN_SHAFT(name, segment) INLINE int name(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) { \
+    float m = LS_EDGE_MARGIN; \
+    return (segment(p0, p1, p2, p3, p4, p5, p6, p7, ax, ay, az, bx, by, bz, m) != 0 || \
+            segment(p0, p1, p2, p3, p4, p5, p6, p7, bx, by, bz, cx, cy, cz, m) != 0 || \
+            segment(p0, p1, p2, p3, p4, p5, p6, p7, cx, cy, cz, ax, ay, az, m) != 0) ? 1 : 0; }
+LS_EDGES_IN_SHAFT(ls_edges_in_shaft, ls_segment_in_shaft)
+#ifdef LS_CULL_RUNS
+LS_EDGES_IN_SHAFT(ls_edges_in_shaft6, ls_segment_in_shaft6)
+LS_EDGES_IN_SHAFT(ls_edges_in_shaft5, ls_segment_in_shaft5)
+#endif
 
 // The exact test the build compiles in, for a pair the steps before left.
 INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAMS, float eps, float3 ca, float3 cb) {
@@ -682,7 +708,7 @@ INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, float eps,
 // candidates' triangles) vector code, 8 pairs per instruction, where one loop over the pairs paid
 // a data-dependent branch per pair and step (Sponza grid-ls 64³ N=3: ls_count 4.9-5.1 s with the
 // cull alone in a vector loop, 4.0-4.4 s so).
-INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps,
+INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
                          float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
     // 1. cull and 2. certain from the masks, as bits of the run: blocks of LS_RUN_LANES (a constant
@@ -714,12 +740,14 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
     // remainder: most runs hold fewer pairs than a vector), the block's tail padded with candidate 0.
     for (uint l = 0u; l < LS_RUN_LANES; ++l) left[count + l] = 0u;
     int verdict[32 + LS_RUN_LANES];
-    for (uint q0 = 0u; q0 < count; q0 += LS_RUN_LANES) {  // 3. facet planes
-        for (uint l = 0u; l < LS_RUN_LANES; ++l) {
-            uint r = tri_ref + k0 + left[q0 + l];
-            verdict[q0 + l] = ls_facet_verdict(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7);
-        }
-    }
+    // 3. facet planes, and below the triangle's edges: a loop for the shaft's number of facets
+#define LS_PAIR_LOOP(pairs, test) for (uint q0 = 0u; q0 < pairs; q0 += LS_RUN_LANES) { \
+        for (uint l = 0u; l < LS_RUN_LANES; ++l) { \
+            uint r = tri_ref + k0 + left[q0 + l]; \
+            verdict[q0 + l] = test(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7); } }
+    if (facets > 6u) LS_PAIR_LOOP(count, ls_facet_verdict)
+    else if (facets == 6u) LS_PAIR_LOOP(count, ls_facet_verdict6)
+    else LS_PAIR_LOOP(count, ls_facet_verdict5)
     uint undecided = 0u;
     for (uint q = 0u; q < count; ++q) {
         met |= (verdict[q] == 1 ? 1u : 0u) << left[q];
@@ -727,12 +755,9 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
         undecided += verdict[q] == 2 ? 1u : 0u;
     }
     for (uint l = 0u; l < LS_RUN_LANES; ++l) left[undecided + l] = 0u;
-    for (uint q0 = 0u; q0 < undecided; q0 += LS_RUN_LANES) {  // the triangle's edges
-        for (uint l = 0u; l < LS_RUN_LANES; ++l) {
-            uint r = tri_ref + k0 + left[q0 + l];
-            verdict[q0 + l] = ls_edges_in_shaft(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7);
-        }
-    }
+    if (facets > 6u) LS_PAIR_LOOP(undecided, ls_edges_in_shaft)
+    else if (facets == 6u) LS_PAIR_LOOP(undecided, ls_edges_in_shaft6)
+    else LS_PAIR_LOOP(undecided, ls_edges_in_shaft5)
     for (uint q = 0u; q < undecided; ++q) {  // the exact test, one pair at a time
         if (verdict[q] != 0 || ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref + k0 + left[q]), eps, ca, cb) != 0) {
             met |= 1u << left[q];
@@ -893,6 +918,11 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     float4 p5 = V(ls_planes)[pb + 5u];
     float4 p6 = V(ls_planes)[pb + 6u];
     float4 p7 = V(ls_planes)[pb + 7u];
+#ifdef LS_CULL_RUNS
+    // The hull's facets: the slots past them hold (0, 0, 0, -1) (ls_planes_kernel), 5 at least
+    uint facets = (p5.x == 0.0f && p5.y == 0.0f && p5.z == 0.0f) ? 5u
+                : ((p6.x == 0.0f && p6.y == 0.0f && p6.z == 0.0f) ? 6u : 8u);
+#endif
 #endif
 #ifndef KERNEL_ls_fill
     uint non_empty = 0u;  // shafts of one-chunk cells with candidates (stats; ls_set_len counts the others)
@@ -932,7 +962,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         // Runs of 32 candidates (ls_run_meets), their bits in list order (the fill's lists and the
         // pair bits as one pass over all).
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {
-            uint met = ls_run_meets(CTX_ARG ra, rb, tri_ref, k0, min(end_i - first_i - k0, 32u), eps, n, sh, shaft,
+            uint met = ls_run_meets(CTX_ARG ra, rb, tri_ref, k0, min(end_i - first_i - k0, 32u), eps, facets, n, sh, shaft,
                                     ca, cb, p0, p1, p2, p3, p4, p5, p6, p7);
 #ifdef KERNEL_ls_fill
             for (uint put = met; put != 0u; put &= put - 1u) {  // in list order
