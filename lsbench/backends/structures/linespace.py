@@ -38,12 +38,16 @@ work item per shaft of a group of up to CELLS_PER_ITEM cells (BuildPlan.cell_gro
 each candidate, from the masks where they know the answer, else by the facet planes and the exact
 test (conservative margin LS_EPS), writes the count where the item's offset goes (not in the head
 lists' builds below: a head's row holds it) and keeps each decision as a bit (LS_PAIR_BITS_BYTES:
-all cells' bits, or a batch's); (4) sets: per group of cells (LS_GROUP_SHAFTS) a hash of each
-shaft's bit row, a hash table per cell that confirms equal rows bit by bit, the smallest shaft of
-each set as its head (ls_insert_kernel .. ls_heads_kernel), each shaft's set index from the
-scanned heads per word (ls_head_counts_kernel, ls_shaft_set_kernel), and where all cells' bits are
-kept and the densest cell's row fits one invocation (head_rows_fit; most builds), each group's
-heads listed in shaft order and the set indices packed as the offsets array's blocks hold them;
+all cells' bits, over several buffers where the driver asks, or a batch's); (4) sets: per group
+of cells (LS_GROUP_SHAFTS) a hash of each shaft's bit row, a hash table per cell that confirms
+equal rows bit by bit, sets numbered in the order of their first shaft (the "head"). Where all
+cells' bits are kept and the densest cell's row fits one invocation (head_rows_fit; most builds),
+each group's heads are listed in shaft order and the set indices packed as the offsets array's
+blocks hold them: a work item per cell walks its shafts in order (ls_cell_find_sets_kernel,
+ls_cell_head_list_kernel) where the group's densest cell fits the loop budget
+(cells_fit_loop_budget), else, as in the other builds, a work item per shaft inserts it, the
+smallest shaft of each set becomes its head (ls_insert_kernel .. ls_heads_kernel) and each
+shaft's set index comes from the scanned heads per word (ls_head_counts_kernel, ls_shaft_set_kernel);
 (5) each head's set length, the sum of its items' counts (over the head lists, its row's bits:
 ls_head_len_kernel; else over every shaft, with the set's index left in a head's first item, the
 earlier chunks' counts in the others and LS_SKIP in every other shaft's items: ls_set_len_kernel),
