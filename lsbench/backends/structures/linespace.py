@@ -772,6 +772,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_cell_sets=cell_sets, ls_stats=stats_buf, **shaft_set_bufs)
+
         def hashed(spec: KernelSpec) -> KernelSpec:  # tests: a hash that collides (LS_HASH_MASK)
             return spec if LS_HASH_MASK == 0xFFFFFFFF else spec.with_defines(LS_HASH_MASK=f"{LS_HASH_MASK}u")
 

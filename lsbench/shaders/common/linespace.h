@@ -609,7 +609,7 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 // past them hold planes every point is inside (ls_planes_kernel), which decide nothing. Where a
 // work item is one shaft (LS_CULL_RUNS) the pair loops run the variant for its facets only
 // (ls_facet_verdict5 / 6, ls_edges_in_shaft5 / 6: the same decisions, fewer planes; Sponza grid-ls
-// 64³ N=3 PoCL ls_count 3.5 -> 3.2 s, docs/linespace-build.md).
+// 64³ N=3 PoCL ls_count 3.50-3.73 -> 3.37-3.41 s, docs/linespace-build.md).
 #ifdef LS_EXACT_EDGES
 #define LS_FACET_CORNER_IN if (lo != 0 && min(wa, min(wb, wc)) <= 0.0f) return 1;
 #else
@@ -1024,7 +1024,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     // them), so that the cores' atomics seldom take a line from each other (PoCL, Sponza grid-ls
     // 64³ N=3: the count took 0.1-0.2 s less without these atomics, 0.05 s less with the buckets
     // than with one line for all).
-#ifndef LS_NO_COUNT_STATS
 #ifndef LS_NO_COUNT_STATS  // ls_cell_find_sets_kernel counts them (LS_CELL_STATS)
     uint stat = 16u * (1u + ((gid >> 3u) & (LS_STAT_BUCKETS - 1u)));
     if (non_empty > 0u) ATOMIC_ADD(V(ls_stats)[stat], non_empty);
@@ -1033,7 +1032,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         sum_hi += before + sum_lo < before ? 1u : 0u;
     }
     if (sum_hi > 0u) ATOMIC_ADD(V(ls_stats)[stat + 3u], sum_hi);
-#endif
 #endif
 #endif
 #ifndef KERNEL_ls_fill
@@ -1305,9 +1303,11 @@ INLINE void ls_insert_kernel(CTX_PARAM uint b) {
 // several chunks has its non-empty shafts counted here from their rows (stats, ls_stats[3]), as
 // ls_shaft_set_kernel does; where no loop budget can cut a cell (LS_CELL_STATS: PoCL) every
 // shaft's are, and the candidates of all its shafts' lists (ls_stats[4], [5]), which the count
-// then leaves out (LS_NO_COUNT_STATS: its atomics were 0.1 s of PoCL's 3.6 s, Sponza grid-ls 64³ N=3). All of a cell's probes run in one invocation: where a driver's loop
-// budget cut them (geometry.h), ls_stats[2] counts the cell and the host finds that group's sets
-// again by the passes per shaft (linespace.py).
+// then leaves out (LS_NO_COUNT_STATS: its atomics were 0.1 s of PoCL's 3.6 s, Sponza grid-ls
+// 64³ N=3). All of a cell's probes run in one invocation: where a driver's loop budget cut them
+// (geometry.h), ls_stats[2] counts the cell and the host finds that group's sets again by the
+// passes per shaft (linespace.py; a group takes this pass only where its densest cell fits half
+// the budget: cells_fit_loop_budget).
 INLINE void ls_cell_find_sets_kernel(CTX_PARAM uint c) {
     uint shafts = V(ls_shafts);
     uint at = V(ls_cell_first) + c;
