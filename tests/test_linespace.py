@@ -95,6 +95,22 @@ def segments_hit(p, q, tris) -> np.ndarray:
         return (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
+def read_layout(built):
+    """read_linespaces(built) and the offsets array's words as stored (the sets' layout)."""
+    return read_linespaces(built), linespace.read_array(built.device, built.buffers, "ls_shaft_offsets")
+
+
+def assert_same_layout(built, whole) -> None:
+    """`built` stores the offsets words of `whole` (read_layout of another build of the same case)
+    and every shaft the same triangles (a voxel's list may come in another order between builds)."""
+    (_, offs, cand), words = read_layout(built)
+    (_, whole_offs, whole_cand), whole_words = whole
+    np.testing.assert_array_equal(words, whole_words)
+    np.testing.assert_array_equal(offs, whole_offs)
+    for lo, hi in zip(offs[:-1], offs[1:]):
+        assert sorted(cand[lo:hi]) == sorted(whole_cand[lo:hi])
+
+
 def read_linespaces(built):
     """ls_ids and the shafts' lists expanded to one per shaft (CSR offsets, triangle ids), decoded
     from the shared-sets layout as the traversal reads it (linespace.shaft_lists): each Line Space's
@@ -342,15 +358,12 @@ def test_sets_are_confirmed_word_by_word(device, monkeypatch, mask):
     the full hash's, shaft by shaft, and the sets are laid out the same."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
-    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole_layout = read_layout(whole)
     whole.release()
     monkeypatch.setattr(linespace, "LS_HASH_MASK", mask)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)
-    ls_ids, offs, cand = read_linespaces(built)
-    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
-    for lo, hi in zip(offs[:-1], offs[1:]):
-        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_same_layout(built, whole_layout)
     built.release()
 
 
@@ -363,8 +376,7 @@ def test_sets_found_again_where_the_loop_budget_cuts_a_cell(device, monkeypatch)
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     assert whole.stats["ls_sets_by_cells"] == whole.stats["ls_set_groups"] == 1, whole.stats
     assert whole.stats["ls_sets_cells_cut"] == 0, whole.stats
-    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
-    whole_stats = whole.stats
+    whole_layout, whole_stats = read_layout(whole), whole.stats
     whole.release()
     monkeypatch.setattr(linespace, "LS_HASH_MASK", 0)
     built = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
@@ -373,11 +385,7 @@ def test_sets_found_again_where_the_loop_budget_cuts_a_cell(device, monkeypatch)
     assert (st["ls_sets_cells_cut"] > 0) == cut and st["ls_sets_by_cells"] == (0 if cut else 1), st
     for key in ("non_empty_shafts", "candidate_references", "ls_sets", "ls_set_references"):
         assert st[key] == whole_stats[key], key
-    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
-    ls_ids, offs, cand = read_linespaces(built)
-    np.testing.assert_array_equal(offs, whole_lists[1])
-    for lo, hi in zip(offs[:-1], offs[1:]):
-        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_same_layout(built, whole_layout)
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)
     built.release()
 
@@ -390,7 +398,7 @@ def test_pair_bits_split_over_buffers(device, monkeypatch, structure):
     scene, res, n = random_scene(), (3, 3, 2) if structure == "grid-ls" else (4, 4, 4), 2
     whole = backends.build(device, structure, scene, BuildParams(resolution=res, ls_n=n))
     assert whole.stats["ls_pair_bits_buffers"] == 1 and whole.stats["ls_pair_bits"], whole.stats
-    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole_layout = read_layout(whole)
     whole.release()
     split_array = linespace.split_array
 
@@ -403,11 +411,7 @@ def test_pair_bits_split_over_buffers(device, monkeypatch, structure):
     built = backends.build(device, structure, scene, BuildParams(resolution=res, ls_n=n))
     st = built.stats
     assert st["ls_pair_bits"] and st["ls_head_lists"] and st["ls_pair_bits_buffers"] in (3, 4), st
-    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
-    ls_ids, offs, cand = read_linespaces(built)
-    np.testing.assert_array_equal(offs, whole_lists[1])
-    for lo, hi in zip(offs[:-1], offs[1:]):
-        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_same_layout(built, whole_layout)
     if structure == "grid-ls":  # (the octrees' lists against their reference: test_octree_ls.py)
         assert_reference_lists(device, scene, res, n, exact_kind(device), built)
     built.release()
@@ -419,9 +423,9 @@ def test_sets_by_cells_in_the_groups_that_fit(device, monkeypatch):
     pass): the lists and layout are those of the build with every group by cells."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
-    whole_lists, whole_words = read_linespaces(whole), linespace.read_array(device, whole.buffers, "ls_shaft_offsets")
+    whole_layout = read_layout(whole)
     lists = voxel_lists(device, scene, res)
-    lens = [len(lists[v]) for v in np.flatnonzero(np.diff(whole_lists[0]))]  # the Line Space cells' candidates
+    lens = [len(lists[v]) for v in np.flatnonzero(np.diff(whole_layout[0][0]))]  # the Line Space cells' candidates
     whole.release()
     half = sorted(lens)[len(lens) // 2]
     monkeypatch.setattr(linespace, "LS_GROUP_SHAFTS", 15 * n**4)  # a cell per group
@@ -430,11 +434,7 @@ def test_sets_by_cells_in_the_groups_that_fit(device, monkeypatch):
     st = built.stats
     assert st["ls_set_groups"] == len(lens) and 0 < st["ls_sets_by_cells"] < len(lens), st
     assert st["ls_sets_by_cells"] == sum(1 for k in lens if k < half), st
-    np.testing.assert_array_equal(linespace.read_array(device, built.buffers, "ls_shaft_offsets"), whole_words)
-    ls_ids, offs, cand = read_linespaces(built)
-    np.testing.assert_array_equal(offs, whole_lists[1])
-    for lo, hi in zip(offs[:-1], offs[1:]):
-        assert sorted(cand[lo:hi]) == sorted(whole_lists[2][lo:hi])
+    assert_same_layout(built, whole_layout)
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)
     built.release()
 

@@ -615,19 +615,20 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 #else
 #define LS_FACET_CORNER_IN
 #endif
+// step(p0) .. step(p4), .. step(p5), .. step(p7): a step per facet slot of a 5-, 6- or 8-facet hull
+#define LS_PLANES5(step) step(p0) step(p1) step(p2) step(p3) step(p4)
+#define LS_PLANES6(step) LS_PLANES5(step) step(p5)
+#define LS_PLANES8(step) LS_PLANES6(step) step(p6) step(p7)
 #define LS_FACET_VERDICT(name, steps) INLINE int name(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) { \
     int lo = 2, hi = 0; \
     float wa = -INF_F, wb = -INF_F, wc = -INF_F; \
     steps \
     LS_FACET_CORNER_IN \
     return lo == 0 ? 0 : (hi == 1 ? 1 : 2); }
-LS_FACET_VERDICT(ls_facet_verdict, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
-                 LS_FACET_STEP(p4) LS_FACET_STEP(p5) LS_FACET_STEP(p6) LS_FACET_STEP(p7))
+LS_FACET_VERDICT(ls_facet_verdict, LS_PLANES8(LS_FACET_STEP))
 #ifdef LS_CULL_RUNS
-LS_FACET_VERDICT(ls_facet_verdict6, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
-                 LS_FACET_STEP(p4) LS_FACET_STEP(p5))
-LS_FACET_VERDICT(ls_facet_verdict5, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET_STEP(p2) LS_FACET_STEP(p3)
-                 LS_FACET_STEP(p4))
+LS_FACET_VERDICT(ls_facet_verdict6, LS_PLANES6(LS_FACET_STEP))
+LS_FACET_VERDICT(ls_facet_verdict5, LS_PLANES5(LS_FACET_STEP))
 #endif
 
 // 1 when some point of the segment (x0, y0, z0) -> (x1, y1, z1) lies in the shaft volume with its
@@ -646,13 +647,10 @@ LS_FACET_VERDICT(ls_facet_verdict5, LS_FACET_STEP(p0) LS_FACET_STEP(p1) LS_FACET
     bool gone = false; \
     steps \
     return !gone && r0 <= r1 ? 1 : 0; }
-LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
-                    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5) LS_CLIP_STEP(p6) LS_CLIP_STEP(p7))
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft, LS_PLANES8(LS_CLIP_STEP))
 #ifdef LS_CULL_RUNS
-LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft6, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
-                    LS_CLIP_STEP(p4) LS_CLIP_STEP(p5))
-LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft5, LS_CLIP_STEP(p0) LS_CLIP_STEP(p1) LS_CLIP_STEP(p2) LS_CLIP_STEP(p3)
-                    LS_CLIP_STEP(p4))
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft6, LS_PLANES6(LS_CLIP_STEP))
+LS_SEGMENT_IN_SHAFT(ls_segment_in_shaft5, LS_PLANES5(LS_CLIP_STEP))
 #endif
 
 // After the facet planes left it undecided: with LS_EXACT_EDGES the exact test's first half (a
