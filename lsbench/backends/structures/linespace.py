@@ -783,11 +783,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # ls_cell_find_sets_kernel), in the head lists' builds, in each group whose densest cell fits
         # the driver's loop budget; the other groups by the passes per shaft.
         cell_lens = ranges[:, 1].astype(np.int64) - ranges[:, 0]
-
-        def group_by_cells(g0: int, g1: int) -> bool:
-            return head_lists is not None and cells_fit_loop_budget(device, int(cell_lens[g0:g1].max()), per_cell)
-
-        by_cells = any(group_by_cells(g0, min(g0 + group_cells, cells.count)) for g0 in range(0, cells.count, group_cells))
+        groups_fit = set() if head_lists is None else {  # the first cells of those groups (all cells' bits: from 0)
+            g0 for g0 in range(0, cells.count, group_cells)
+            if cells_fit_loop_budget(device, int(cell_lens[g0:g0 + group_cells].max()), per_cell)}
+        by_cells = bool(groups_fit)
         # ... and where no loop budget can cut a cell, the stats from its rows, not from the count
         cell_stats = by_cells and device.backend not in LS_LOOP_BUDGET
         if by_cells:
@@ -832,7 +831,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 shafts = (g1 - g0) * per_cell
                 bu = batch_uniforms(g0, g1, bits_base)
                 groups += 1
-                if group_by_cells(g0, g1):  # each cell clears its own table
+                if g0 in groups_fit:  # each cell clears its own table
                     device.dispatch(cell_find_sets, g1 - g0, group_bufs, bu)
                     # Where a driver has a loop budget, each group's words 2 and 3, so that a group
                     # some cell of which was cut is found again below and counted there only
