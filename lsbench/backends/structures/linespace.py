@@ -110,14 +110,15 @@ UINT32_MAX = 2**32 - 1
 # PoCL's global memory (7-14 GiB here) holds fewer than 4 buffers of its 2-4 GiB limit.
 LS_MAX_CHUNKS = 4
 # llvmpipe ends an invocation's loops after 65535 iterations in all (shaders/common/geometry.h); a
-# count or fill work item runs one loop iteration per candidate of its chunk (the runs of
-# LS_CULL_RUNS are only where work items run one after the other: no GL driver) plus the exact test's
-# inner loops where the compiler keeps them (SAT: at most 12; clipping: 8 planes x 2 loops of at
-# most LS_MAX_POLY = 16 vertices; edges: the hull's 8 corners and at most 28 edge slots) and the
-# cell lookup (< 32), so chunks of 4095 (SAT), 1236 (edges) or 240 (clipping) candidates stay
-# inside the budget. PoCL has no such limit: one chunk per cell.
+# count or fill work item runs, per candidate of its chunk, at most one iteration of each step's
+# loop (linespace.h ls_run_meets: the masks, the facet planes, the edges, the exact test) and one
+# of the fill's, plus the exact test's inner loops where the compiler keeps them (SAT: at most 12;
+# clipping: 8 planes x 2 loops of at most LS_MAX_POLY = 16 vertices; edges: the hull's 8 corners
+# and at most 28 edge slots) and the run and cell loops (< 16), so chunks of 1985 (SAT), 1149
+# (edges) or 236 (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk
+# per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
-LS_ITERATIONS_PER_CANDIDATE = {"sat": 16, "clip": 1 + 8 * 2 * 16 + 16, "edges": 1 + 8 + 28 + 16}
+LS_ITERATIONS_PER_CANDIDATE = {"sat": 5 + 12 + 16, "clip": 5 + 8 * 2 * 16 + 16, "edges": 5 + 8 + 28 + 16}
 # Most cells one count or fill work item walks for its shaft where every cell is one chunk
 # (BuildPlan.cell_groups; linespace.h: ls_shaft_kernel): the shaft's set-up paid once for them.
 # On llvmpipe an invocation of the count's large shader costs a core ~150 ns before any pair
@@ -136,7 +137,7 @@ LS_RUN_LANES = 8
 # Bytes of cull masks one batch of cells may use (6 N^2 uints per reference); a batch holds at
 # least one cell.
 LS_MASK_BYTES = 64 * 2**20
-LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 float4)
+LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 float4, or 9 floats coordinate-major)
 # Most bytes the count's decisions (one bit per shaft and candidate) may take. The sets are found
 # from them; where those of all cells do not fit, the cells go in batches whose bits do, each
 # batch's sets are found while its bits are there, and the fill tests the pairs again. Over
@@ -270,7 +271,7 @@ LS_CARRY = KernelSpec(
     "ls_carry", LS_HEADERS_NO_SCENE, "ls_carry_kernel",
     (Buf("ls_carry_chunk", "uint", "rw"),), LS_UNIFORMS + (Uniform("ls_carry", "uint"),))
 
-BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_MASKS, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
+BUILD_SPECS = (LS_PLANES, LS_EDGES, LS_REACH, LS_COUNT, LS_FILL, LS_INSERT, LS_HEADS, LS_HEAD_COUNTS,
                LS_SHAFT_SET, LS_SHAFT_SET_LIST, LS_HEAD_LEN, LS_HEAD_FILL, LS_HEAD_FILL.with_defines(LS_IDS16=1),
                LS_SET_LEN, LS_LAYOUT, LS_LAYOUT.with_defines(LS_HEAD_LIST=1), LS_FIRST_SETS, LS_CARRY)
 
@@ -450,7 +451,14 @@ def _cull_runs(spec: KernelSpec) -> KernelSpec:
     if not any(b.name == "ls_local_tris" for b in spec.buffers):
         return spec
     buffers = tuple(Buf(b.name, "float", b.access) if b.name == "ls_local_tris" else b for b in spec.buffers)
-    return dataclasses.replace(spec, buffers=buffers).with_defines(LS_CULL_RUNS=1, LS_RUN_LANES=f"{LS_RUN_LANES}u")
+    uniforms = spec.uniforms + (Uniform("ls_tri_stride", "uint"),)
+    return dataclasses.replace(spec, buffers=buffers, uniforms=uniforms).with_defines(
+        LS_CULL_RUNS=1, LS_RUN_LANES=f"{LS_RUN_LANES}u")
+
+
+def _masks_spec(device: Device) -> KernelSpec:
+    """ls_masks as the count reads its triangles: coordinate-major where work items run one after the other."""
+    return _cull_runs(LS_MASKS) if device.serial_work_items else LS_MASKS
 
 
 def _set_len_spec(device: Device, one_chunk: bool) -> KernelSpec:
@@ -469,6 +477,7 @@ def prepare(device: Device) -> None:
     that no compile falls inside the timed build."""
     for spec in BUILD_SPECS:
         device.compile(_with_test(device, spec))
+    device.compile(_masks_spec(device))  # as the build dispatches it
     for one_chunk in (True, False):
         device.compile(_set_len_spec(device, one_chunk))
     for fill_from_bits in (True, False):
@@ -743,7 +752,10 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         most_refs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches)
         # + LS_RUN_LANES words: the count's cull reads whole vector blocks past a run (linespace.h ls_run_meets)
         masks = temp("ls_masks", 4 * (most_refs * patches + LS_RUN_LANES), zero=False)
-        local_tris = temp("ls_local_tris", LOCAL_TRI_BYTES * most_refs, zero=False)
+        # coordinate-major where the pair steps are vector loops (linespace.h LS_TRI_ARGS): 9 rows of
+        # tri_stride floats, LS_RUN_LANES past the last reference, as a block reads whole vectors
+        tri_stride = most_refs + LS_RUN_LANES
+        local_tris = temp("ls_local_tris", max(LOCAL_TRI_BYTES * most_refs, 36 * tri_stride), zero=False)
         bits = split_array(device, "ls_pair_bits", "LS_BITS", -(-pairs // 32))
         bits_bufs = bits.alloc(device, zero=all_bits)
         temps.extend(bits_bufs.values())
@@ -802,7 +814,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def batch_uniforms(c0: int, c1: int, bits_base: int = 0) -> dict:
             return dict(u, ls_chunk=min(plan.chunk, UINT32_MAX), ls_item_base=int(plan.item_bases[c0]),
                         ls_ref_base=int(plan.ref_bases[c0]), ls_cell_first=c0, ls_cell_end=c1,
-                        ls_bits_base=bits_base, ls_grouped=0, ls_cull_margin=cull_margin)
+                        ls_bits_base=bits_base, ls_grouped=0, ls_cull_margin=cull_margin,
+                        ls_tri_stride=tri_stride)
 
         no_groups = temp("ls_cell_groups", 4)
         cells_per_item = CELLS_PER_ITEM.get(device.backend, CELLS_PER_ITEM_DEFAULT)
@@ -867,7 +880,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
-            device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
+            device.dispatch(_masks_spec(device), plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
                 bits.fill_zero(device, bits_bufs, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
@@ -951,7 +964,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             for c0, c1 in plan.batches:
                 bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
                 if not masks_ready:
-                    device.dispatch(LS_MASKS, plan.batch_refs(c0, c1), cell_bufs, bu)
+                    device.dispatch(_masks_spec(device), plan.batch_refs(c0, c1), cell_bufs, bu)
                 shaft_pass(fill, c0, c1, fill_bufs, bu)
         first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
         non_empty = int(first_line[0] + cells_non_empty + stat_words[1:, 0].sum())

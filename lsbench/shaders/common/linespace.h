@@ -546,14 +546,13 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 // compare them with the numpy reference of lsbench/oracle/reference.py: shaft_candidates, and
 // docs/linespace-build.md with the lists of the build before 1 and 2 on Sponza).
 
-// Does the triangle meet the shaft? Steps 1-3 above, for the candidates of a cell, whose masks of
-// the shaft's patches are ls_masks[ra] and ls_masks[rb] (ls_masks_kernel: a cell's masks
-// patch-major) and whose cell-local triangles are references tri_ref.. (LS_TRI_ARGS). Two forms of
-// one sequence of steps: ls_pair_meets takes one pair through all of them, where the lanes are
-// shafts (llvmpipe, GPUs: a second loop level there made the count 5-20 % slower); ls_run_meets
-// (LS_CULL_RUNS, where work items run one after the other: PoCL) takes each step over a run of up
-// to 32 candidates in a loop of its own, which the compiler makes vector code, where one loop over
-// the pairs paid a data-dependent branch per pair and step (docs/linespace-build.md).
+// Does the triangle meet the shaft? Steps 1-3 above, for a run of up to 32 candidates of a cell
+// (ls_run_meets), whose masks of the shaft's patches are ls_masks[ra] and ls_masks[rb]
+// (ls_masks_kernel: a cell's masks patch-major) and whose cell-local triangles are references
+// tri_ref.. (LS_TRI_ARGS), as bits of the candidates that meet it. Each step is a loop of its own
+// over what the step before left, in one of two forms: vector blocks where work items run one
+// after the other (LS_CULL_RUNS: PoCL), loops over the bits left where the lanes are shafts
+// (llvmpipe, GPUs) (docs/linespace-build.md).
 #if defined(LS_CULL_RUNS) && !defined(LS_RUN_LANES)
 #define LS_RUN_LANES 8u  // pairs per block of ls_run_meets' vector loops (linespace.py sets it): 8-wide vectors
 #endif
@@ -566,18 +565,22 @@ INLINE int ls_masks_certain(uint ma, uint mb) {
 }
 
 // Reference r's cell-local triangle (ls_masks_kernel writes it): ls_local_tris[3 r .. 3 r + 2],
-// (a, 0), (b, 0), (c, 0). Where the pair loops are vector loops (LS_CULL_RUNS, ls_run_meets)
-// linespace.py binds the buffer as plain floats (12 per reference): they and the scalar forms
-// below keep those loops free of vector-typed values, which LLVM's loop vectorizer does not take.
+// (a, 0), (b, 0), (c, 0). Where the pair steps are vector loops (LS_CULL_RUNS, ls_run_meets)
+// linespace.py binds the buffer as plain floats, coordinate-major: coordinate c (a.x, a.y, .., c.z)
+// of reference r at c * ls_tri_stride + r, so a block of consecutive candidates loads each
+// coordinate as one contiguous vector (ls_run_meets), where 12 floats per reference made it 9
+// gathers (Sponza grid-ls 64³ N=3: ls_count 3.39 -> 3.17 s, docs/linespace-build.md). Scalar forms
+// keep those loops free of vector-typed values, which LLVM's loop vectorizer does not take.
 // Elsewhere the vec4 loads stay (llvmpipe's count took 10 % longer with 9 float loads). The
-// indices are ints: a signed 32-bit index lets x86 gather 8 floats with 32-bit offsets
-// (vgatherdps), where an unsigned one, widened to 64 bits, took two 4-float vgatherqps (Sponza
-// grid-ls 64³ N=3: ls_count 4.16-4.31 -> 3.68-3.72 s). The buffer holds a batch's references, 48
-// bytes each in a buffer the driver allows (linespace.py: plan_build), so 12 r + 11 < 2^31.
+// indices are ints: a signed 32-bit index lets x86 gather with 32-bit offsets (vgatherdps,
+// ls_run_meets' exact test and other gathers), where an unsigned one, widened to 64 bits, took two
+// vgatherqps (Sponza grid-ls 64³ N=3: ls_count 4.16-4.31 -> 3.68-3.72 s). The buffer holds a
+// batch's references, 9 x 4 bytes each (plus a block of padding) in a buffer the driver allows
+// (linespace.py: plan_build, 48 bytes per reference), so 9 ls_tri_stride < 2^31.
 #ifdef LS_CULL_RUNS
-#define LS_TRI_ARGS(r) V(ls_local_tris)[I32(12u * (r))], V(ls_local_tris)[I32(12u * (r) + 1u)], V(ls_local_tris)[I32(12u * (r) + 2u)], \
-    V(ls_local_tris)[I32(12u * (r) + 4u)], V(ls_local_tris)[I32(12u * (r) + 5u)], V(ls_local_tris)[I32(12u * (r) + 6u)], \
-    V(ls_local_tris)[I32(12u * (r) + 8u)], V(ls_local_tris)[I32(12u * (r) + 9u)], V(ls_local_tris)[I32(12u * (r) + 10u)]
+#define LS_TRI_AT(c, r) V(ls_local_tris)[I32((c) * V(ls_tri_stride) + (r))]
+#define LS_TRI_ARGS(r) LS_TRI_AT(0u, r), LS_TRI_AT(1u, r), LS_TRI_AT(2u, r), LS_TRI_AT(3u, r), LS_TRI_AT(4u, r), \
+    LS_TRI_AT(5u, r), LS_TRI_AT(6u, r), LS_TRI_AT(7u, r), LS_TRI_AT(8u, r)
 #else
 #define LS_TRI_ARGS(r) V(ls_local_tris)[3u * (r)].x, V(ls_local_tris)[3u * (r)].y, V(ls_local_tris)[3u * (r)].z, \
     V(ls_local_tris)[3u * (r) + 1u].x, V(ls_local_tris)[3u * (r) + 1u].y, V(ls_local_tris)[3u * (r) + 1u].z, \
@@ -591,13 +594,12 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 }
 
 // One facet plane of step 3 for the triangle's corners (distances past the plane pushed out by
-// eps): lo/hi gather the planes' verdicts (0: all corners outside it, 1: all inside, 2: straddles),
-// wa/wb/wc each corner's largest distance.
+// eps): sep > 0 once a plane has all three corners outside it; wa/wb/wc each corner's largest
+// distance, so a corner lies inside every plane where its w <= 0. (The same comparisons as
+// counting each plane's outside corners, in fewer operations: ls_count 3.39 -> 3.34 s.)
 #define LS_FACET_STEP(pl) { \
     float da = ls_dist3(pl, ax, ay, az) - eps, db = ls_dist3(pl, bx, by, bz) - eps, dc = ls_dist3(pl, cx, cy, cz) - eps; \
-    int outs = (da > 0.0f ? 1 : 0) + (db > 0.0f ? 1 : 0) + (dc > 0.0f ? 1 : 0); \
-    int side = outs == 3 ? 0 : (outs == 0 ? 1 : 2); \
-    lo = min(lo, side); hi = max(hi, side); \
+    sep = max(sep, min(da, min(db, dc))); \
     wa = max(wa, da); wb = max(wb, db); wc = max(wc, dc); }
 
 // Step 3's facet planes: 0 separated by one of them, 1 inside all, 2 undecided. With the edges
@@ -611,20 +613,19 @@ INLINE float ls_dist3(float4 pl, float x, float y, float z) {
 // (ls_facet_verdict5 / 6, ls_edges_in_shaft5 / 6: the same decisions, fewer planes; Sponza grid-ls
 // 64³ N=3 PoCL ls_count 3.50-3.73 -> 3.37-3.41 s, docs/linespace-build.md).
 #ifdef LS_EXACT_EDGES
-#define LS_FACET_CORNER_IN if (lo != 0 && min(wa, min(wb, wc)) <= 0.0f) return 1;
+#define LS_FACET_INSIDE(wa, wb, wc) min(wa, min(wb, wc))  // a corner inside every plane
 #else
-#define LS_FACET_CORNER_IN
+#define LS_FACET_INSIDE(wa, wb, wc) max(wa, max(wb, wc))  // every corner inside every plane
 #endif
 // step(p0) .. step(p4), .. step(p5), .. step(p7): a step per facet slot of a 5-, 6- or 8-facet hull
 #define LS_PLANES5(step) step(p0) step(p1) step(p2) step(p3) step(p4)
 #define LS_PLANES6(step) LS_PLANES5(step) step(p5)
 #define LS_PLANES8(step) LS_PLANES6(step) step(p6) step(p7)
 #define LS_FACET_VERDICT(name, steps) INLINE int name(LS_TRI_PARAMS, float eps, LS_PLANE_PARAMS) { \
-    int lo = 2, hi = 0; \
+    float sep = -INF_F; \
     float wa = -INF_F, wb = -INF_F, wc = -INF_F; \
     steps \
-    LS_FACET_CORNER_IN \
-    return lo == 0 ? 0 : (hi == 1 ? 1 : 2); }
+    return sep > 0.0f ? 0 : (LS_FACET_INSIDE(wa, wb, wc) <= 0.0f ? 1 : 2); }
 LS_FACET_VERDICT(ls_facet_verdict, LS_PLANES8(LS_FACET_STEP))
 #ifdef LS_CULL_RUNS
 LS_FACET_VERDICT(ls_facet_verdict6, LS_PLANES6(LS_FACET_STEP))
@@ -685,27 +686,58 @@ INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAM
 }
 
 #ifndef LS_CULL_RUNS
-// Steps 1-3 for one pair, the cheapest decision first.
-INLINE int ls_pair_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, float eps,
-                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2, float4 p3, float4 p4,
-                         float4 p5, float4 p6, float4 p7) {
-    uint ma = V(ls_masks)[ra];
-    uint mb = V(ls_masks)[rb];
-    if ((ma & mb & LS_CULL_BITS) != 0u) return 0;  // 1. cull
-    if (ls_masks_certain(ma, mb) != 0) return 1;  // 2. certain from the masks
-    int facets = ls_facet_verdict(LS_TRI_ARGS(tri_ref), eps, p0, p1, p2, p3, p4, p5, p6, p7);  // 3. facet planes
-    if (facets != 2) return facets;
-    if (ls_edges_in_shaft(LS_TRI_ARGS(tri_ref), eps, p0, p1, p2, p3, p4, p5, p6, p7) != 0) return 1;
-    return ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref), eps, ca, cb);
+// Steps 1-3 for a run of candidates [k0, k0 + span) (span <= 32) of a shaft, as bits k - k0 of
+// the candidates that meet it, where the lanes are shafts (llvmpipe, GPUs): each step a loop over
+// the bits the step before left. llvmpipe runs both sides of every branch for all its lanes
+// (gallivm's if only masks them; a loop ends when no lane goes on), so one loop over the pairs
+// with the steps as branches paid every step for every pair, culled or not: here a step costs as
+// many iterations as the group's busiest lane has pairs for it (Sponza grid-ls glsl 128³ N=2:
+// ls_count 5.69 -> 5.44 s, docs/linespace-build.md). On GPUs the same: a warp runs each step
+// only while one of its lanes has a pair there.
+INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
+                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
+                         float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
+    uint live = 0u;  // 1. cull and 2. certain from the masks
+    uint met = 0u;
+    for (uint k = 0u; k < span; ++k) {
+        uint ma = V(ls_masks)[ra + k0 + k];
+        uint mb = V(ls_masks)[rb + k0 + k];
+        if ((ma & mb & LS_CULL_BITS) == 0u) {
+            if (ls_masks_certain(ma, mb) != 0) met |= 1u << k;
+            else live |= 1u << k;
+        }
+    }
+    uint undecided = 0u;  // 3. facet planes
+    for (; live != 0u; live &= live - 1u) {
+        uint k = LOWEST_BIT(live);
+        int v = ls_facet_verdict(LS_TRI_ARGS(tri_ref + k0 + k), eps, p0, p1, p2, p3, p4, p5, p6, p7);
+        if (v == 1) met |= 1u << k;
+        if (v == 2) undecided |= 1u << k;
+    }
+    uint exact = 0u;  // the triangle's edges
+    for (; undecided != 0u; undecided &= undecided - 1u) {
+        uint k = LOWEST_BIT(undecided);
+        if (ls_edges_in_shaft(LS_TRI_ARGS(tri_ref + k0 + k), eps, p0, p1, p2, p3, p4, p5, p6, p7) != 0) met |= 1u << k;
+        else exact |= 1u << k;
+    }
+    for (; exact != 0u; exact &= exact - 1u) {  // the exact test
+        uint k = LOWEST_BIT(exact);
+        if (ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref + k0 + k), eps, ca, cb) != 0) met |= 1u << k;
+    }
+    return met;
 }
 #else
 // Steps 1-3 for a run of candidates [k0, k0 + span) (span <= 32) of a shaft, as bits k - k0 of
 // the candidates that meet it. Where work items run one after the other (PoCL) each step is a
-// loop of its own over the pairs the step before left, packed into `left`: without a branch per
-// pair the compiler makes the cull and the facet planes and triangle edges (gathers of the packed
-// candidates' triangles) vector code, 8 pairs per instruction, where one loop over the pairs paid
-// a data-dependent branch per pair and step (Sponza grid-ls 64³ N=3: ls_count 4.9-5.1 s with the
-// cull alone in a vector loop, 4.0-4.4 s so).
+// loop of its own over blocks of LS_RUN_LANES consecutive candidates, the pairs it decides kept
+// as bits: without a branch per pair the compiler makes the cull, the facet planes and the
+// triangle edges vector code, 8 pairs per instruction (contiguous loads of the coordinate-major
+// triangles, LS_TRI_ARGS), where one loop over the pairs paid a data-dependent branch per pair
+// and step (Sponza grid-ls 64³ N=3: ls_count 4.9-5.1 s with the cull alone in a vector loop,
+// 4.0-4.4 s so). A block the step before decided whole is skipped; the lanes it decided in
+// part are computed and dropped, which costs less than packing the pairs left and gathering
+// their triangles (48.2 M such blocks against 35.4 M packed ones on that scene; ls_count
+// 3.39 -> 3.17 s, docs/linespace-build.md).
 INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
                          float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
@@ -728,38 +760,31 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
     uint in_run = span < 32u ? (1u << span) - 1u : 0xffffffffu;
     met &= in_run;
     live &= in_run & ~met;
-    uint left[32 + LS_RUN_LANES];  // the pairs left, packed
-    uint count = 0u;
-    for (; live != 0u; live &= live - 1u) {
-        left[count] = LOWEST_BIT(live);
-        count += 1u;
-    }
-    // The vector loops take blocks of LS_RUN_LANES pairs (a constant trip count, so no scalar
-    // remainder: most runs hold fewer pairs than a vector), the block's tail padded with candidate 0.
-    for (uint l = 0u; l < LS_RUN_LANES; ++l) left[count + l] = 0u;
-    int verdict[32 + LS_RUN_LANES];
-    // 3. facet planes, and below the triangle's edges: a loop for the shaft's number of facets
-#define LS_PAIR_LOOP(pairs, test) for (uint q0 = 0u; q0 < pairs; q0 += LS_RUN_LANES) { \
+    // 3. facet planes, then the triangle's edges, a loop for the shaft's number of facets: every
+    // block with a pair left. A test's verdict 1 accepts; `next` (facets 2, edges 0) leaves the
+    // pair to the step after.
+#define LS_BLOCKS(pairs, test, next, left) for (uint k8 = 0u; k8 < span; k8 += LS_RUN_LANES) { \
+        uint sel = (pairs >> k8) & ((1u << LS_RUN_LANES) - 1u); \
+        if (sel == 0u) continue; \
+        int v8[LS_RUN_LANES]; \
         for (uint l = 0u; l < LS_RUN_LANES; ++l) { \
-            uint r = tri_ref + k0 + left[q0 + l]; \
-            verdict[q0 + l] = test(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7); } }
-    if (facets > 6u) LS_PAIR_LOOP(count, ls_facet_verdict)
-    else if (facets == 6u) LS_PAIR_LOOP(count, ls_facet_verdict6)
-    else LS_PAIR_LOOP(count, ls_facet_verdict5)
+            uint r = tri_ref + k0 + k8 + l; \
+            v8[l] = test(LS_TRI_ARGS(r), eps, p0, p1, p2, p3, p4, p5, p6, p7); } \
+        uint yes = 0u, on = 0u; \
+        for (uint l = 0u; l < LS_RUN_LANES; ++l) { \
+            yes |= (v8[l] == 1 ? 1u : 0u) << l; on |= (v8[l] == next ? 1u : 0u) << l; } \
+        met |= (yes & sel) << k8; left |= (on & sel) << k8; }
     uint undecided = 0u;
-    for (uint q = 0u; q < count; ++q) {
-        met |= (verdict[q] == 1 ? 1u : 0u) << left[q];
-        left[undecided] = left[q];
-        undecided += verdict[q] == 2 ? 1u : 0u;
-    }
-    for (uint l = 0u; l < LS_RUN_LANES; ++l) left[undecided + l] = 0u;
-    if (facets > 6u) LS_PAIR_LOOP(undecided, ls_edges_in_shaft)
-    else if (facets == 6u) LS_PAIR_LOOP(undecided, ls_edges_in_shaft6)
-    else LS_PAIR_LOOP(undecided, ls_edges_in_shaft5)
-    for (uint q = 0u; q < undecided; ++q) {  // the exact test, one pair at a time
-        if (verdict[q] != 0 || ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref + k0 + left[q]), eps, ca, cb) != 0) {
-            met |= 1u << left[q];
-        }
+    if (facets > 6u) LS_BLOCKS(live, ls_facet_verdict, 2, undecided)
+    else if (facets == 6u) LS_BLOCKS(live, ls_facet_verdict6, 2, undecided)
+    else LS_BLOCKS(live, ls_facet_verdict5, 2, undecided)
+    uint exact = 0u;
+    if (facets > 6u) LS_BLOCKS(undecided, ls_edges_in_shaft, 0, exact)
+    else if (facets == 6u) LS_BLOCKS(undecided, ls_edges_in_shaft6, 0, exact)
+    else LS_BLOCKS(undecided, ls_edges_in_shaft5, 0, exact)
+    for (; exact != 0u; exact &= exact - 1u) {  // the exact test, one pair at a time
+        uint k = LOWEST_BIT(exact);
+        if (ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(tri_ref + k0 + k), eps, ca, cb) != 0) met |= 1u << k;
     }
     return met;
 }
@@ -920,6 +945,8 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     // The hull's facets: the slots past them hold (0, 0, 0, -1) (ls_planes_kernel), 5 at least
     uint facets = (p5.x == 0.0f && p5.y == 0.0f && p5.z == 0.0f) ? 5u
                 : ((p6.x == 0.0f && p6.y == 0.0f && p6.z == 0.0f) ? 6u : 8u);
+#else
+    uint facets = 8u;  // every slot (lanes are shafts: a branch on the count runs every variant)
 #endif
 #endif
 #ifndef KERNEL_ls_fill
@@ -956,7 +983,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         uint pend = 0u;
 #endif
-#ifdef LS_CULL_RUNS
         // Runs of 32 candidates (ls_run_meets), their bits in list order (the fill's lists and the
         // pair bits as one pass over all).
         for (uint k0 = 0u; k0 < end_i - first_i; k0 += 32u) {
@@ -979,32 +1005,6 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
             }
 #endif
         }
-#else
-        // One loop over the pairs, the cull in the pair test: where the lanes are shafts, the
-        // runs above (a second loop level) made the count 5-20 % slower (llvmpipe).
-#ifdef LS_PAIR_BITS
-        uint word = 0u;
-#endif
-        for (uint i = first_i; i < end_i; ++i) {
-            uint k = i - first_i;
-            int meets = ls_pair_meets(CTX_ARG ra + k, rb + k, tri_ref + k, eps, n, sh, shaft, ca, cb,
-                                      p0, p1, p2, p3, p4, p5, p6, p7);
-            if (meets != 0) {
-#ifdef KERNEL_ls_fill
-                pend = ls_put_candidate(CTX_ARG first, count, i - begin, pend);
-#endif
-                count += 1u;
-            }
-#ifdef LS_PAIR_BITS
-            if (meets != 0) word |= 1u << (bit & 31u);
-            if ((bit & 31u) == 31u || i + 1u == end_i) {  // word full, or the chunk's last: neighbours share it
-                if (word != 0u) LS_BITS_OR(bit >> 5u, word);
-                word = 0u;
-            }
-            bit += 1u;
-#endif
-        }
-#endif
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
@@ -1142,10 +1142,24 @@ INLINE void ls_masks_kernel(CTX_PARAM uint gid) {
     float3 a = (t.a - lo) * inv;
     float3 b = (t.b - lo) * inv;
     float3 c = (t.c - lo) * inv;
+#ifdef LS_CULL_RUNS
+    uint row = ref - V(ls_ref_base);  // coordinate-major (LS_TRI_ARGS)
+    uint st = V(ls_tri_stride);
+    V(ls_local_tris)[row] = a.x;
+    V(ls_local_tris)[st + row] = a.y;
+    V(ls_local_tris)[2u * st + row] = a.z;
+    V(ls_local_tris)[3u * st + row] = b.x;
+    V(ls_local_tris)[4u * st + row] = b.y;
+    V(ls_local_tris)[5u * st + row] = b.z;
+    V(ls_local_tris)[6u * st + row] = c.x;
+    V(ls_local_tris)[7u * st + row] = c.y;
+    V(ls_local_tris)[8u * st + row] = c.z;
+#else
     uint tri_row = 3u * (ref - V(ls_ref_base));  // the pair tests read these, not the scene's indexed vertices
     V(ls_local_tris)[tri_row] = make_float4(a.x, a.y, a.z, 0.0f);
     V(ls_local_tris)[tri_row + 1u] = make_float4(b.x, b.y, b.z, 0.0f);
     V(ls_local_tris)[tri_row + 2u] = make_float4(c.x, c.y, c.z, 0.0f);
+#endif
     float3 nrm = cross(b - a, c - a);
     float3 ex = make_float3(1.0f, 0.0f, 0.0f), ey = make_float3(0.0f, 1.0f, 0.0f), ez = make_float3(0.0f, 0.0f, 1.0f);
     float3 e0 = b - a, e1 = c - b, e2 = a - c;
