@@ -438,14 +438,15 @@ def test_sets_by_cells_in_the_groups_that_fit(device, monkeypatch):
 
 
 def test_cells_fit_the_loop_budget():
-    """One work item finds a cell's sets where clearing its table and, per shaft, a hash and two
-    compares of its row take at most half the driver's loop budget (the rest for further probes)."""
+    """One work item finds a cell's sets where clearing its table (two words per slot) and, per shaft,
+    a hash and two compares of its row take at most half the driver's loop budget (the rest for
+    further probes)."""
     glsl, opencl = (type("D", (), {"backend": b}) for b in ("glsl", "opencl"))
     budget = linespace.LS_LOOP_BUDGET["glsl"]
     per_cell = 15 * 3**4
-    assert linespace.cells_fit_loop_budget(glsl, 32 * 7, per_cell)  # 7 words: 2,430 + 1,215 x 23 <= 32,767
-    assert not linespace.cells_fit_loop_budget(glsl, 32 * 7 + 1, per_cell)  # 8 words: ... x 26 > 32,767
-    assert 2 * per_cell + per_cell * 23 <= budget // 2 < 2 * per_cell + per_cell * 26
+    assert linespace.cells_fit_loop_budget(glsl, 32 * 6, per_cell)  # 6 words: 4,860 + 1,215 x 20 <= 32,767
+    assert not linespace.cells_fit_loop_budget(glsl, 32 * 6 + 1, per_cell)  # 7 words: ... x 23 > 32,767
+    assert 4 * per_cell + per_cell * 20 <= budget // 2 < 4 * per_cell + per_cell * 23
     assert linespace.cells_fit_loop_budget(opencl, 2**31, 15 * 8**4)  # no budget
 
 

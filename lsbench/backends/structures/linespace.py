@@ -514,13 +514,13 @@ def selection_stats(ls: LineSpaces, candidate_cells: int, k: int) -> dict:
 
 def cells_fit_loop_budget(device: Device, densest: int, per_cell: int) -> bool:
     """Whether one invocation may find a cell's sets (linespace.h: ls_cell_find_sets_kernel): within
-    the driver's loop budget it clears the cell's table (2 x 15 N^4 slots) and, per shaft, hashes
+    the driver's loop budget it clears the cell's table (2 x 15 N^4 slots of two words) and, per shaft, hashes
     its row and compares it with two slots' rows (the words of the group's densest row each),
     in half the budget. Where more probes than that spend it, the kernel says so and that group's
     sets are found by the passes per shaft."""
     budget = LS_LOOP_BUDGET.get(device.backend)
     words = -(-densest // 32)
-    return budget is None or 2 * per_cell + per_cell * (2 + 3 * words) <= budget // 2
+    return budget is None or 4 * per_cell + per_cell * (2 + 3 * words) <= budget // 2
 
 
 def head_rows_fit(device: Device, densest: int) -> bool:
@@ -712,7 +712,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     if not all_bits:
         plan = plan_build(ranges, per_cell, patches, plan.chunk, mask_bytes, bits_limit)
         pairs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches) * per_cell
-    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell, device.max_buffer_bytes // (8 * per_cell)))
+    # the sets' hash tables take 16 bytes per shaft (linespace.h ls_cell_find_sets_kernel: two slots of two words)
+    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell, device.max_buffer_bytes // (16 * per_cell)))
     group_shafts = group_cells * per_cell
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
@@ -779,7 +780,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
         group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, **bits_bufs,
-                          ls_set_table=temp("ls_set_table", 8 * group_shafts, zero=False),
+                          ls_set_table=temp("ls_set_table", 16 * group_shafts, zero=False),
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
