@@ -691,9 +691,9 @@ INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAM
 // the bits the step before left. llvmpipe runs both sides of every branch for all its lanes
 // (gallivm's if only masks them; a loop ends when no lane goes on), so one loop over the pairs
 // with the steps as branches paid every step for every pair, culled or not: here a step costs as
-// many iterations as the group's busiest lane has pairs for it (Sponza grid-ls glsl 128³ N=2:
-// ls_count 5.69 -> 5.44 s, docs/linespace-build.md). On GPUs the same: a warp runs each step
-// only while one of its lanes has a pair there.
+// many iterations as the group's busiest lane has pairs for it (grid-ls glsl 128³ N=2, ls_count:
+// Sponza 5.68 -> 5.24 s, BMW 5.60 -> 2.83 s; docs/linespace-build.md). On GPUs the same: a warp
+// runs each step only while one of its lanes has a pair there.
 INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
                          float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
