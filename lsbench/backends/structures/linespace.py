@@ -143,8 +143,11 @@ LOCAL_TRI_BYTES = 48  # a reference's cell-local triangle (ls_local_tris: 3 floa
 # batch's sets are found while its bits are there, and the fill tests the pairs again. Over
 # several buffers where the driver's per-buffer limit is less (SplitArray: llvmpipe's 128 MiB).
 LS_PAIR_BITS_BYTES = 256 * 2**20
-# Shafts whose sets are found in one group (the hash table takes 8 bytes per shaft, the slots
-# and heads 4.1 more): 32 MiB of table, well under llvmpipe's 128 MiB per buffer.
+# Bytes per shaft of the sets' hash table: two slots per shaft, each the member and its row's hash
+# (linespace.h ls_cell_find_sets_kernel; ls_insert_kernel uses the first half).
+LS_SET_TABLE_BYTES = 16
+# Shafts whose sets are found in one group (the hash table takes LS_SET_TABLE_BYTES per shaft, the
+# slots and heads 4.1 more): 64 MiB of table, under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
 # Cache lines of 16 words that the count's work items spread their stats over (linespace.h).
 LS_STAT_BUCKETS = 32
@@ -712,8 +715,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
     if not all_bits:
         plan = plan_build(ranges, per_cell, patches, plan.chunk, mask_bytes, bits_limit)
         pairs = max(plan.batch_refs(c0, c1) for c0, c1 in plan.batches) * per_cell
-    # the sets' hash tables take 16 bytes per shaft (linespace.h ls_cell_find_sets_kernel: two slots of two words)
-    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell, device.max_buffer_bytes // (16 * per_cell)))
+    group_cells = max(1, min(cells.count, LS_GROUP_SHAFTS // per_cell,
+                             device.max_buffer_bytes // (LS_SET_TABLE_BYTES * per_cell)))
     group_shafts = group_cells * per_cell
     temps: list[DeviceBuffer] = []  # released however the build ends
     kept: list[DeviceBuffer] = []  # released only if it fails
@@ -756,7 +759,8 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         # coordinate-major where the pair steps are vector loops (linespace.h LS_TRI_ARGS): 9 rows of
         # tri_stride floats, LS_RUN_LANES past the last reference, as a block reads whole vectors
         tri_stride = most_refs + LS_RUN_LANES
-        local_tris = temp("ls_local_tris", max(LOCAL_TRI_BYTES * most_refs, 36 * tri_stride), zero=False)
+        masks_spec = _masks_spec(device)
+        local_tris = temp("ls_local_tris", max(LOCAL_TRI_BYTES * most_refs, 9 * 4 * tri_stride), zero=False)
         bits = split_array(device, "ls_pair_bits", "LS_BITS", -(-pairs // 32))
         bits_bufs = bits.alloc(device, zero=all_bits)
         temps.extend(bits_bufs.values())
@@ -780,7 +784,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         temps.extend(shaft_set_bufs.values())
         cell_sets = temp("ls_cell_sets", 4 * (cells.count + 1))  # sets per cell, then the first set
         group_bufs = dict(ls_cell_ranges=cells.ranges, ls_ref_bases=ref_bases, **bits_bufs,
-                          ls_set_table=temp("ls_set_table", 16 * group_shafts, zero=False),
+                          ls_set_table=temp("ls_set_table", LS_SET_TABLE_BYTES * group_shafts, zero=False),
                           ls_set_slot=temp("ls_set_slot", 4 * group_shafts, zero=False),
                           ls_set_heads=temp("ls_set_heads", 4 * (-(-group_shafts // 32)), zero=False),
                           ls_head_counts=temp("ls_head_counts", 4 * (-(-group_shafts // 32)), zero=False),
@@ -881,7 +885,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
-            device.dispatch(_masks_spec(device), plan.batch_refs(c0, c1), cell_bufs, bu)
+            device.dispatch(masks_spec, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
                 bits.fill_zero(device, bits_bufs, -(-plan.batch_refs(c0, c1) * per_cell // 32))
             shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
@@ -965,7 +969,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
             for c0, c1 in plan.batches:
                 bu = batch_uniforms(c0, c1, 0 if all_bits else int(plan.ref_bases[c0]))
                 if not masks_ready:
-                    device.dispatch(_masks_spec(device), plan.batch_refs(c0, c1), cell_bufs, bu)
+                    device.dispatch(masks_spec, plan.batch_refs(c0, c1), cell_bufs, bu)
                 shaft_pass(fill, c0, c1, fill_bufs, bu)
         first_line = device.read(stats_buf, np.uint32, 16).astype(np.int64)
         non_empty = int(first_line[0] + cells_non_empty + stat_words[1:, 0].sum())
