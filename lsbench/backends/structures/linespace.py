@@ -115,8 +115,11 @@ LS_MAX_CHUNKS = 4
 # of the fill's, plus the exact test's inner loops where the compiler keeps them (SAT: at most 12;
 # clipping: 8 planes x 2 loops of at most LS_MAX_POLY = 16 vertices; edges: the hull's 8 corners
 # and at most 28 edge slots) and the run and cell loops (< 16), so chunks of 1985 (SAT), 1149
-# (edges) or 236 (clipping) candidates stay inside the budget. PoCL has no such limit: one chunk
-# per cell.
+# (edges) or 236 (clipping) candidates stay inside the budget. The queued count of a group of
+# one-chunk cells (linespace.h: ls_count_queued; the group's candidates fit one chunk) takes per
+# candidate the same step iterations, one to queue its pair, one to put out its bit and two of
+# the rows read back, and per LS_PAIR_QUEUE candidates one pass of each loop. PoCL has no such
+# limit: one chunk per cell.
 LS_LOOP_BUDGET = {"glsl": 65535}
 LS_ITERATIONS_PER_CANDIDATE = {"sat": 5 + 12 + 16, "clip": 5 + 8 * 2 * 16 + 16, "edges": 5 + 8 + 28 + 16}
 # Most cells one count or fill work item walks for its shaft where every cell is one chunk
@@ -146,6 +149,9 @@ LS_PAIR_BITS_BYTES = 256 * 2**20
 # Bytes per shaft of the sets' hash table: two slots per shaft, each the member and its row's hash
 # (linespace.h ls_cell_find_sets_kernel; ls_insert_kernel uses the first half).
 LS_SET_TABLE_BYTES = 16
+# Pairs a lane's count queues before testing them (linespace.h: ls_count_queued; at most 128):
+# Sponza grid-ls glsl 128³ N=2, ls_count 3.67 s at 32, 3.40-3.46 at 64, 3.32-3.37 at 128.
+LS_PAIR_QUEUE = 128
 # Shafts whose sets are found in one group (the hash table takes LS_SET_TABLE_BYTES per shaft, the
 # slots and heads 4.1 more): 64 MiB of table, under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
@@ -449,6 +455,13 @@ def _count_fill_specs(device: Device, fill_from_bits: bool, item_counts: bool = 
     return count, fill
 
 
+def _grouped_count(device: Device, count: KernelSpec) -> KernelSpec:
+    """The count as it runs over groups of one-chunk cells: where the lanes are shafts (llvmpipe,
+    GPUs) it queues the pairs the masks leave over the group's cells and tests them LS_PAIR_QUEUE
+    at a time (linespace.h: ls_count_queued); cells of several chunks keep the loops per run."""
+    return count if device.serial_work_items else count.with_defines(LS_PAIR_QUEUE=f"{LS_PAIR_QUEUE}u")
+
+
 def _cull_runs(spec: KernelSpec) -> KernelSpec:
     """`spec` with LS_CULL_RUNS, the cell-local triangles read as plain floats (linespace.h LS_TRI_ARGS)."""
     if not any(b.name == "ls_local_tris" for b in spec.buffers):
@@ -485,9 +498,11 @@ def prepare(device: Device) -> None:
         device.compile(_set_len_spec(device, one_chunk))
     for fill_from_bits in (True, False):
         count, fill = _count_fill_specs(device, fill_from_bits)
-        for spec in (count, fill, fill.with_defines(LS_IDS16=1)):
+        for spec in (count, _grouped_count(device, count), fill, fill.with_defines(LS_IDS16=1)):
             device.compile(spec)
-    device.compile(_count_fill_specs(device, True, item_counts=False)[0])
+    count = _count_fill_specs(device, True, item_counts=False)[0]
+    for spec in (count, _grouped_count(device, count)):
+        device.compile(spec)
 
 
 def check_min_candidates(k: int) -> int:
@@ -827,9 +842,11 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         cell_groups = {(c0, c1): plan.cell_groups(c0, c1, per_cell, cells_per_item)  # count and fill
                        for c0, c1 in plan.batches}
 
-        def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict) -> None:
+        def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict,
+                       grouped_spec: KernelSpec | None = None) -> None:
             """One count or fill dispatch over the batch [c0, c1): a work item per shaft of each
-            group of cells (BuildPlan.cell_groups), or per shaft and chunk of one cell."""
+            group of cells (BuildPlan.cell_groups; `grouped_spec` where given), or per shaft and
+            chunk of one cell."""
             groups = cell_groups[(c0, c1)]
             if groups is None:
                 device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]),
@@ -837,7 +854,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
                 return
             group_buf = device.upload("ls_cell_groups", groups)
             try:
-                device.dispatch(spec, per_cell * (len(groups) - 1), dict(bufs, ls_cell_groups=group_buf),
+                device.dispatch(grouped_spec or spec, per_cell * (len(groups) - 1), dict(bufs, ls_cell_groups=group_buf),
                                 dict(uniforms, ls_grouped=1))
             finally:
                 device.release(group_buf)
@@ -882,13 +899,14 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads, count_stats=not cell_stats)
         count = bits.bind(count_spec if by_heads else items.bind(count_spec))
+        grouped_count = _grouped_count(device, count)
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
             device.dispatch(masks_spec, plan.batch_refs(c0, c1), cell_bufs, bu)
             if not all_bits:
                 bits.fill_zero(device, bits_bufs, -(-plan.batch_refs(c0, c1) * per_cell // 32))
-            shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu)
+            shaft_pass(count, c0, c1, dict(cell_bufs, ls_stats=stats_buf, **item_bufs), bu, grouped_count)
             if not all_bits:  # this batch's sets, while its bits are there
                 find_sets(c0, c1, bits_base)
         if all_bits:

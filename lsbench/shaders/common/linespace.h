@@ -556,6 +556,9 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
 #if defined(LS_CULL_RUNS) && !defined(LS_RUN_LANES)
 #define LS_RUN_LANES 8u  // pairs per block of ls_run_meets' vector loops (linespace.py sets it): 8-wide vectors
 #endif
+#if defined(LS_PAIR_QUEUE) && (!defined(KERNEL_ls_count) || !defined(LS_PAIR_BITS) || defined(LS_CULL_RUNS) || LS_PAIR_QUEUE > 128u)
+#error "LS_PAIR_QUEUE: the count with pair bits where the lanes are shafts, at most 128 pairs (ls_count_queued)"
+#endif
 
 // Step 2's certain bits: the triangle crosses one of the two patches, or covers the cell's cut
 // with its plane and the patches lie on opposite sides.
@@ -693,7 +696,10 @@ INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAM
 // with the steps as branches paid every step for every pair, culled or not: here a step costs as
 // many iterations as the group's busiest lane has pairs for it (grid-ls glsl 128³ N=2, ls_count:
 // Sponza 5.68 -> 5.24 s, BMW 5.60 -> 2.83 s; docs/linespace-build.md). On GPUs the same: a warp
-// runs each step only while one of its lanes has a pair there.
+// runs each step only while one of its lanes has a pair there. But gallivm also runs each loop's
+// body once where no lane has an iteration, so each run pays one pass of every step: groups of
+// one-chunk cells queue their pairs instead (ls_count_queued); the fill, which lists a shaft's
+// candidates in order, and the cells of several chunks (full runs) use this.
 INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
                          uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
                          float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
@@ -815,7 +821,8 @@ INLINE LsRow ls_shaft_row(CTX_PARAM uint s) {
 #endif
 
 #if defined(KERNEL_ls_insert) || defined(KERNEL_ls_cell_find_sets) || (defined(KERNEL_ls_fill) && defined(LS_PAIR_BITS)) \
-    || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST))
+    || defined(KERNEL_ls_head_len) || defined(KERNEL_ls_head_fill) || (defined(KERNEL_ls_shaft_set) && defined(LS_HEAD_LIST)) \
+    || defined(LS_PAIR_QUEUE)
 // A row of pair bits (a shaft's decisions for its cell's candidates, from any bit): the fill
 // from the bits and the sets' kernels (ls_insert_kernel) read it a word at a time.
 // Word k (bits 32 k .. 32 k + 31) of a row of `len` bits from bit `start`: reads no bit past the row.
@@ -902,6 +909,114 @@ INLINE uint ls_item_first(CTX_PARAM uint item, uint chunk, uint left) {
 }
 #endif
 
+#ifdef LS_PAIR_QUEUE
+// The count of a group of one-chunk cells where the lanes are shafts (llvmpipe, GPUs;
+// linespace.py _grouped_count): steps 1 and 2 (the masks) for runs of up to 32 candidates, cell
+// after cell, each pair they leave queued (its cell-local triangle and its bit); once the next run
+// might overflow the queue, the facet planes, the triangle's edges and the exact test each make
+// one loop over the queued pairs the step before left, and the bits of the pairs that meet the
+// shaft go out, one atomic per word. Why: llvmpipe runs a loop's body at least once, masked, even
+// where no lane has an iteration (docs/linespace-build.md), so ls_run_meets' step loops, run per
+// run, cost a facet, an edge and an exact test for every run of every cell: with those loops
+// present but never iterating, Sponza grid-ls glsl 128³ N=2's count took 4.0 of its 5.2 s,
+// without them 1.0 s. Queued, they run once per LS_PAIR_QUEUE candidates (3.2-3.4 s). The queue
+// fills by candidates, the same in every lane of a group, so the lanes test their queues together.
+// Cells of several chunks (one item per chunk of one cell: dense cells) keep ls_run_meets, whose
+// runs there are full (BMW grid-ls glsl 128³ N=2: queued 3.32 s against 3.07 s).
+// The count per item and the stats are read back from the finished rows (ls_shaft_kernel).
+// A set of queue entries: the bits of a uint4 (LS_PAIR_QUEUE <= 128). Add entry q where `on`;
+// take the lowest entry q of a non-empty set, removing it.
+#define LS_QSET(m, q, on) { uint b_ = ((on) ? 1u : 0u) << ((q) & 31u); uint w_ = (q) >> 5u; \
+        m.x |= w_ == 0u ? b_ : 0u; m.y |= w_ == 1u ? b_ : 0u; m.z |= w_ == 2u ? b_ : 0u; m.w |= w_ == 3u ? b_ : 0u; }
+#define LS_QANY(m) ((m.x | m.y | m.z | m.w) != 0u)
+#define LS_QTAKE(m, q) { uint o_ = m.x != 0u ? 0u : (m.y != 0u ? 32u : (m.z != 0u ? 64u : 96u)); \
+        uint w_ = o_ == 0u ? m.x : (o_ == 32u ? m.y : (o_ == 64u ? m.z : m.w)); \
+        q = o_ + LOWEST_BIT(w_); w_ &= w_ - 1u; \
+        m.x = o_ == 0u ? w_ : m.x; m.y = o_ == 32u ? w_ : m.y; m.z = o_ == 64u ? w_ : m.z; m.w = o_ == 96u ? w_ : m.w; }
+INLINE void ls_count_queued(CTX_PARAM uint cell_first, uint cell_end, uint shaft, uint patches, uint mask_a, uint mask_b,
+                            float eps, uint n, LsShaft sh, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
+                            float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
+    uint q_tri[LS_PAIR_QUEUE];  // a queued pair's cell-local triangle (reference)
+    uint q_bit[LS_PAIR_QUEUE];  // and its bit in ls_pair_bits
+    uint cell = cell_first;
+    uint k0 = 0u;  // the next run's first candidate in the cell's list
+    while (cell < cell_end) {
+        uint queued = 0u;
+        uint consumed = 0u;  // candidates of this pass: the same in the lanes of a group's cells
+        while (cell < cell_end) {
+            uint len = V(ls_cell_ranges)[2u * cell + 1u] - V(ls_cell_ranges)[2u * cell];
+            uint span = min(len - k0, 32u);
+            if (consumed + span > LS_PAIR_QUEUE) break;
+            consumed += span;
+            uint cell_ref = V(ls_ref_bases)[cell] - V(ls_ref_base);  // the cell's first reference in the batch
+            uint ra = cell_ref * patches + mask_a * len + k0;  // the run's masks (ls_masks_kernel)
+            uint rb = cell_ref * patches + mask_b * len + k0;
+            uint tri = cell_ref + k0;
+            uint bit = ls_row_start(CTX_ARG cell, shaft, len) + k0;
+            uint live = 0u;  // 1. cull and 2. certain from the masks
+            uint met = 0u;
+            for (uint k = 0u; k < span; ++k) {
+                uint ma = V(ls_masks)[ra + k];
+                uint mb = V(ls_masks)[rb + k];
+                if ((ma & mb & LS_CULL_BITS) == 0u) {
+                    if (ls_masks_certain(ma, mb) != 0) met |= 1u << k;
+                    else live |= 1u << k;
+                }
+            }
+            // the run's certain bits: one or two words, which neighbouring items share
+            if (met != 0u) LS_BITS_OR(bit >> 5u, met << (bit & 31u));
+            if ((bit & 31u) != 0u && (met >> (32u - (bit & 31u))) != 0u) LS_BITS_OR((bit >> 5u) + 1u, met >> (32u - (bit & 31u)));
+            for (; live != 0u; live &= live - 1u) {
+                uint k = LOWEST_BIT(live);
+                q_tri[queued] = tri + k;
+                q_bit[queued] = bit + k;
+                queued += 1u;
+            }
+            k0 += 32u;
+            if (k0 >= len) {
+                k0 = 0u;
+                cell += 1u;
+            }
+        }
+        uint4 meet = make_uint4(0u, 0u, 0u, 0u);  // the queued pairs that meet the shaft
+        uint4 left = make_uint4(0u, 0u, 0u, 0u);  // those the step leaves to the next
+        for (uint q = 0u; q < queued; ++q) {  // 3. facet planes
+            int v = ls_facet_verdict(LS_TRI_ARGS(q_tri[q]), eps, p0, p1, p2, p3, p4, p5, p6, p7);
+            LS_QSET(meet, q, v == 1)
+            LS_QSET(left, q, v == 2)
+        }
+        uint4 exact = make_uint4(0u, 0u, 0u, 0u);
+        while (LS_QANY(left)) {  // the triangle's edges
+            uint q;
+            LS_QTAKE(left, q)
+            int e = ls_edges_in_shaft(LS_TRI_ARGS(q_tri[q]), eps, p0, p1, p2, p3, p4, p5, p6, p7);
+            LS_QSET(meet, q, e != 0)
+            LS_QSET(exact, q, e == 0)
+        }
+        while (LS_QANY(exact)) {  // the exact test
+            uint q;
+            LS_QTAKE(exact, q)
+            LS_QSET(meet, q, ls_exact_meets(CTX_ARG n, sh, shaft, LS_TRI_ARGS(q_tri[q]), eps, ca, cb) != 0)
+        }
+        // The bits of the pairs that meet it, in increasing order: one atomic per word
+        uint word = 0xffffffffu;
+        uint bits = 0u;
+        while (LS_QANY(meet)) {
+            uint q;
+            LS_QTAKE(meet, q)
+            uint at = q_bit[q];
+            if ((at >> 5u) != word) {
+                if (bits != 0u) LS_BITS_OR(word, bits);
+                word = at >> 5u;
+                bits = 0u;
+            }
+            bits |= 1u << (at & 31u);
+        }
+        if (bits != 0u) LS_BITS_OR(word, bits);
+    }
+}
+#endif
+
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint grouped = V(ls_grouped);
@@ -955,6 +1070,31 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint sum_lo = 0u;  // the item's candidates, 64 bits as two words (stats: all shafts' lists)
     uint sum_hi = 0u;
 #endif
+#ifdef LS_PAIR_QUEUE
+    ls_count_queued(CTX_ARG cell_first, cell_end, shaft, patches, mask_a, mask_b, eps, n, sh, ca, cb,
+                    p0, p1, p2, p3, p4, p5, p6, p7);
+#if !defined(LS_NO_ITEM_COUNTS) || !defined(LS_NO_COUNT_STATS)
+    // the count per item and the stats from the rows the queued count finished
+    for (uint cell = cell_first; cell < cell_end; ++cell) {
+#ifndef LS_NO_ITEM_COUNTS
+        uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
+#endif
+        uint begin = V(ls_cell_ranges)[2u * cell];
+        uint end = V(ls_cell_ranges)[2u * cell + 1u];
+        uint first_i = begin + chunk * V(ls_chunk);
+        uint len = end - first_i > V(ls_chunk) ? V(ls_chunk) : end - first_i;
+        uint bit = ls_row_start(CTX_ARG cell, shaft, end - begin) + (first_i - begin);
+        uint count = 0u;
+        for (uint w = 0u; 32u * w < len; ++w) count += POPCOUNT(ls_row_word(CTX_ARG bit, len, w));
+#ifndef LS_NO_ITEM_COUNTS
+        LS_ITEM_STORE(item, count);  // the count, until ls_set_len_kernel puts what the fill needs there
+#endif
+        non_empty += chunks == 1u && count > 0u ? 1u : 0u;
+        sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
+        sum_lo += count;
+    }
+#endif
+#else
     for (uint cell = cell_first; cell < cell_end; ++cell) {
         uint item = grouped != 0u ? V(ls_item_base) + (cell - V(ls_cell_first)) * shafts + shaft : gid + V(ls_item_base);
 #ifdef KERNEL_ls_fill
@@ -1018,6 +1158,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #endif
 #endif
     }
+#endif  // LS_PAIR_QUEUE
 #ifndef KERNEL_ls_fill
     // The item's stats go to one of LS_STAT_BUCKETS cache lines, by its index (linespace.py sums
     // them), so that the cores' atomics seldom take a line from each other (PoCL, Sponza grid-ls
