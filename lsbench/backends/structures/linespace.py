@@ -152,6 +152,9 @@ LS_SET_TABLE_BYTES = 16
 # Pairs a lane's count queues before testing them (linespace.h: ls_count_queued; at most 128):
 # Sponza grid-ls glsl 128³ N=2, ls_count 3.67 s at 32, 3.40-3.46 at 64, 3.32-3.37 at 128.
 LS_PAIR_QUEUE = 128
+# Fewest consecutive one-chunk cells that a batch with cells of several chunks dispatches as
+# groups of the queued count (the rest of the batch: an item per chunk).
+LS_GROUPED_RUN = 64
 # Shafts whose sets are found in one group (the hash table takes LS_SET_TABLE_BYTES per shaft, the
 # slots and heads 4.1 more): 64 MiB of table, under llvmpipe's 128 MiB per buffer.
 LS_GROUP_SHAFTS = 1 << 22
@@ -580,6 +583,14 @@ class BuildPlan:
         instead of a search over the cells (linespace.h: ls_shaft_kernel)."""
         return int(self.item_bases[c1] - self.item_bases[c0]) == per_cell * (c1 - c0)
 
+    def one_chunk_runs(self, c0: int, c1: int, per_cell: int, shortest: int) -> list[tuple[int, int]]:
+        """The runs [a, b) of at least `shortest` consecutive one-chunk cells in [c0, c1), in order."""
+        one = (self.item_bases[c0 + 1:c1 + 1] - self.item_bases[c0:c1]) == per_cell
+        steps = np.diff(np.concatenate([[0], one.astype(np.int8), [0]]))
+        starts, ends = np.flatnonzero(steps == 1), np.flatnonzero(steps == -1)
+        keep = ends - starts >= shortest
+        return [(c0 + int(a), c0 + int(b)) for a, b in zip(starts[keep], ends[keep])]
+
     def cell_groups(self, c0: int, c1: int, per_cell: int, cells_per_item: int) -> np.ndarray | None:
         """Where every cell of [c0, c1) is one chunk, the groups of consecutive cells that one
         count or fill work item walks for its shaft (linespace.h: ls_shaft_kernel, ls_cell_groups):
@@ -845,16 +856,30 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
         def shaft_pass(spec: KernelSpec, c0: int, c1: int, bufs: dict, uniforms: dict,
                        grouped_spec: KernelSpec | None = None) -> None:
             """One count or fill dispatch over the batch [c0, c1): a work item per shaft of each
-            group of cells (BuildPlan.cell_groups; `grouped_spec` where given), or per shaft and
-            chunk of one cell."""
+            group of cells (BuildPlan.cell_groups), or per shaft and chunk of one cell. With
+            `grouped_spec` (the queued count) the groups run it, and a batch with cells of several
+            chunks is dispatched in parts: its long runs of one-chunk cells as groups, the rest
+            per chunk."""
             groups = cell_groups[(c0, c1)]
             if groups is None:
-                device.dispatch(spec, int(plan.item_bases[c1] - plan.item_bases[c0]),
-                                dict(bufs, ls_cell_groups=no_groups), uniforms)
+                parts = plan.one_chunk_runs(c0, c1, per_cell, LS_GROUPED_RUN) if grouped_spec else []
+                edges = [c0] + [c for run in parts for c in run] + [c1]
+                for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+                    if a == b:
+                        continue
+                    part = dict(uniforms, ls_cell_first=a, ls_cell_end=b, ls_item_base=int(plan.item_bases[a]))
+                    if k % 2 == 1:  # a run of one-chunk cells
+                        grouped(grouped_spec, plan.cell_groups(a, b, per_cell, cells_per_item), bufs, part)
+                    else:
+                        device.dispatch(spec, int(plan.item_bases[b] - plan.item_bases[a]),
+                                        dict(bufs, ls_cell_groups=no_groups), part)
                 return
+            grouped(grouped_spec or spec, groups, bufs, uniforms)
+
+        def grouped(spec: KernelSpec, groups: np.ndarray, bufs: dict, uniforms: dict) -> None:
             group_buf = device.upload("ls_cell_groups", groups)
             try:
-                device.dispatch(grouped_spec or spec, per_cell * (len(groups) - 1), dict(bufs, ls_cell_groups=group_buf),
+                device.dispatch(spec, per_cell * (len(groups) - 1), dict(bufs, ls_cell_groups=group_buf),
                                 dict(uniforms, ls_grouped=1))
             finally:
                 device.release(group_buf)
@@ -899,7 +924,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads, count_stats=not cell_stats)
         count = bits.bind(count_spec if by_heads else items.bind(count_spec))
-        grouped_count = _grouped_count(device, count)
+        grouped_count = None if device.serial_work_items else _grouped_count(device, count)  # PoCL: as before
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
