@@ -306,7 +306,7 @@ def test_cell_groups_cover_the_batch_inside_one_chunk(per_item):
     assert linespace.plan_build(ranges, 15, 24, chunk=chunk - 2).cell_groups(0, 1000, 15, per_item) is None
 
 
-@pytest.mark.parametrize("split", ["chunks", "chunks-by-cells", "chunks-per-shaft", "batches", "groups"])
+@pytest.mark.parametrize("split", ["chunks", "chunks-by-cells", "chunks-per-shaft", "batches", "groups", "mixed"])
 def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, split):
     """Cells with more candidates than one work item may walk (the driver's loop budget): each
     shaft is counted in chunks, and its list is the one-chunk build's, in list order: with the
@@ -314,15 +314,24 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
     cells' rows; "chunks-by-cells": and each cell's sets found by one work item, which counts the
     non-empty shafts of such cells), and with both over every shaft and chunk ("chunks-per-shaft":
     rows past the budget). Likewise with the cells' masks in several batches and a fill that tests again (no
-    pair bits), and with work items walking groups of 4 cells (the last group shorter)."""
+    pair bits), with work items walking groups of 4 cells (the last group shorter), and ("mixed")
+    with chunks of 3 candidates where the runs of one-chunk cells go as groups of the queued count
+    (llvmpipe; linespace.py shaft_pass) between cells of several chunks."""
     scene, res, n = random_scene(), (3, 3, 2), 2
     whole = backends.build(device, "grid-ls", scene, BuildParams(resolution=res, ls_n=n))
     whole_layout = read_layout(whole)
     assert whole.stats["ls_cell_batches"] == 1 and whole.stats["ls_pair_bits"] and whole.stats["ls_head_lists"]
     whole.release()
-    if split.startswith("chunks"):
+    runs = []  # "mixed": the runs of one-chunk cells dispatched as groups
+    if split.startswith("chunks") or split == "mixed":
         per_candidate = linespace.LS_ITERATIONS_PER_CANDIDATE[exact_kind(device)]
         monkeypatch.setitem(linespace.LS_LOOP_BUDGET, device.backend, 3 * per_candidate)
+    if split == "mixed":
+        monkeypatch.setattr(linespace, "LS_GROUPED_RUN", 1)
+        one_chunk_runs = linespace.BuildPlan.one_chunk_runs
+        monkeypatch.setattr(linespace.BuildPlan, "one_chunk_runs",
+                            lambda plan, *args: runs.extend(one_chunk_runs(plan, *args)) or one_chunk_runs(plan, *args))
+    elif split.startswith("chunks"):
         monkeypatch.setattr(linespace, "head_rows_fit", lambda d, densest: split != "chunks-per-shaft")
         monkeypatch.setattr(linespace, "cells_fit_loop_budget", lambda d, densest, per_cell: split == "chunks-by-cells")
     elif split == "batches":
@@ -339,6 +348,9 @@ def test_candidates_split_over_chunks_are_the_reference(device, monkeypatch, spl
         assert st["ls_sets_cells_cut"] == 0, st
     elif split == "groups":
         assert st["ls_work_items"] == st["shafts"] and st["linespace_cells"] > 4, st
+    elif split == "mixed":
+        assert st["ls_candidate_chunk"] == 3 and st["ls_work_items"] > st["shafts"], st
+        assert (len(runs) > 0) == (not device.serial_work_items), runs
     else:
         assert st["ls_cell_batches"] > 3 and not st["ls_pair_bits"], st
     assert_reference_lists(device, scene, res, n, exact_kind(device), built)
