@@ -924,7 +924,7 @@ def build_linespaces(device: Device, scene_buffers: dict, geometry: GridGeometry
 
         count_spec, fill_spec = _count_fill_specs(device, all_bits, item_counts=not by_heads, count_stats=not cell_stats)
         count = bits.bind(count_spec if by_heads else items.bind(count_spec))
-        grouped_count = None if device.serial_work_items else _grouped_count(device, count)  # PoCL: as before
+        grouped_count = _grouped_count(device, count)
         for c0, c1 in plan.batches:
             bits_base = 0 if all_bits else int(plan.ref_bases[c0])
             bu = batch_uniforms(c0, c1, bits_base)
