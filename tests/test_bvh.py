@@ -171,6 +171,27 @@ def test_the_device_build_is_a_valid_bvh(device, scene_name, leaf_size, quality,
         built.release()
 
 
+@pytest.mark.parametrize("quality", ["treelet", "plain-treelet"])
+def test_restructuring_in_waves_builds_the_climbs_tree(device, monkeypatch, quality):
+    """The treelet restructuring runs as one climb per primitive where work items run one after the
+    other (PoCL) and as waves of the nodes whose subtrees are done where they run in SIMD lanes
+    (llvmpipe, GPUs; bvh.py _restructure_in_waves). Both on this device: the same tree, bit for
+    bit, and one the restructuring changed."""
+    scene = _subset(load_scene("spheres"), 600)
+    trees, stats = [], []
+    for serial in (True, False):
+        monkeypatch.setattr(device, "serial_work_items", serial)
+        built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1), leaf_size=4, options={
+            "bvh_quality": quality, "bvh_nodes": "float"}))
+        trees.append({name: device.read(buf, np.uint8) for name, buf in built.buffers.items()})
+        stats.append(built.stats)
+        built.release()
+    assert trees[0].keys() == trees[1].keys()
+    for name in trees[0]:
+        np.testing.assert_array_equal(trees[0][name], trees[1][name], err_msg=name)
+    assert stats[0]["sah_cost"] == stats[1]["sah_cost"] < 0.95 * stats[1]["sah_cost_collapse"]
+
+
 def test_plain_leaves_fill_to_the_leaf_size(device):
     """bvh_quality = "none": every subtree of at most leaf_size triangles is one leaf, so some leaf
     holds more than half of it (a Karras node of more triangles splits into two smaller ones)."""

@@ -12,7 +12,10 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    the surface-area heuristic decides which subtrees of at most `leaf_size` triangles become
    leaves (bvh.h: bvh_fit_kernel).
 5. Quality pass: TREELET_ROUNDS rounds of treelet restructuring (Karras & Aila 2013; treelets of
-   5 leaves, bottom up with the same arrival counters; bvh.h: bvh_restructure_kernel).
+   5 leaves, bottom up with the same arrival counters; bvh.h: bvh_restructure_kernel, one climb
+   per primitive, where work items run one after the other; bvh_restructure_wave_kernel, waves of
+   the nodes whose subtrees are done, where they run in SIMD lanes: the same trees, BMW bvh glsl
+   build 8.1 -> 2.3 s).
    The SAH cost of the tree after each stage is in the stats: `sah_cost_plain` (the plain LBVH:
    every node of at most leaf_size triangles a leaf), `sah_cost_collapse` (SAH leaves) and
    `sah_cost` (as built), so every build measures the gain; the device time of each kernel is in
@@ -124,6 +127,12 @@ RESTRUCTURE = KernelSpec("bvh_restructure", BVH_HEADERS, "bvh_restructure_kernel
                                           Buf("bvh_parents", "uint", "rw"), Buf("bvh_arrivals", "uint", "rw"),
                                           Buf("bvh_fit_boxes", "float4", "rw"), Buf("bvh_costs", "float", "rw"),
                                           Buf("bvh_counts", "uint", "rw"), Buf("bvh_cut", "uint", "rw")), BVH_UNIFORMS)
+RESTRUCTURE_WAVE = KernelSpec("bvh_restructure_wave", BVH_HEADERS, "bvh_restructure_wave_kernel",
+                              RESTRUCTURE.buffers + (Buf("bvh_wave_in", "uint", "r"), Buf("bvh_wave_out", "uint", "w"),
+                                                     Buf("bvh_wave_count", "uint", "rw")), BVH_UNIFORMS)
+WAVE_START = KernelSpec("bvh_wave_start", BVH_HEADERS_NO_SCENE, "bvh_wave_start_kernel",
+                        (Buf("bvh_parents", "uint", "r"), Buf("bvh_arrivals", "uint", "rw"), Buf("bvh_wave_out", "uint", "w"),
+                         Buf("bvh_wave_count", "uint", "rw")), BVH_UNIFORMS)
 KEEP = KernelSpec("bvh_keep", BVH_HEADERS_NO_SCENE, "bvh_keep_kernel",
                   (Buf("bvh_counts", "uint", "r"), Buf("bvh_parents", "uint", "r"), Buf("bvh_collapse", "uint", "r"),
                    Buf("bvh_keep", "uint", "w")), BVH_UNIFORMS)
@@ -138,7 +147,8 @@ WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
 RECORDS = KernelSpec("bvh_records", BVH_HEADERS_NO_SCENE, "bvh_records_kernel",
                      (Buf("voxel_tris", "uint", "r"), Buf("tri_verts", "float4", "r"),
                       Buf("bvh_records", "float4", "w")), ())
-BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, KEEP, WIDE_FLAGS, WRITE, RECORDS)
+BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, WAVE_START, RESTRUCTURE_WAVE, KEEP, WIDE_FLAGS,
+               WRITE, RECORDS)
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
 FLOAT_NODE_BUFFERS = ("bvh_nodes", "bvh_links")
@@ -183,6 +193,23 @@ def check_leaf_size(value) -> int:
     if size not in LEAF_SIZES:
         raise ValueError(f"leaf_size must be one of {', '.join(map(str, LEAF_SIZES))}, got {value!r}")
     return size
+
+
+def _restructure_in_waves(device: Device, bufs: dict, uniforms: dict, n_tris: int, wave_a: DeviceBuffer,
+                          wave_b: DeviceBuffer, count_buf: DeviceBuffer) -> None:
+    """One round of treelet restructuring as waves of the nodes whose subtrees are done (bvh.h:
+    bvh_restructure_wave_kernel), each wave queueing the next in the other list (n_tris entries
+    each), until none is left."""
+    lists = [wave_a, wave_b]
+    device.fill_zero(count_buf)
+    device.dispatch(WAVE_START, n_tris, dict(bufs, bvh_wave_out=lists[0], bvh_wave_count=count_buf), uniforms)
+    nodes = device.read_uint(count_buf, 0)
+    while nodes > 0:
+        device.fill_zero(count_buf)
+        device.dispatch(RESTRUCTURE_WAVE, nodes, dict(bufs, bvh_wave_in=lists[0], bvh_wave_out=lists[1],
+                                                      bvh_wave_count=count_buf), uniforms)
+        nodes = device.read_uint(count_buf, 0)
+        lists.reverse()
 
 
 def prepare(device: Device) -> None:
@@ -269,9 +296,17 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             stats.update(sah_cost=cost, sah_cost_plain=plain, sah_cost_collapse=cost)
             if quality in ("treelet", "plain-treelet"):
                 cut = temp("bvh_cut", 4, zero=True)
+                bufs = dict(fit_bufs, bvh_arrivals=arrivals, bvh_cut=cut)
+                # one climb per primitive where work items run one after the other (bvh.h:
+                # bvh_restructure_kernel), else waves of climbers (bvh_restructure_wave_kernel)
+                waves = None if device.serial_work_items else (
+                    temp("bvh_wave_a", 4 * n_tris), temp("bvh_wave_b", 4 * n_tris), temp("bvh_wave_count", 4))
                 for _ in range(TREELET_ROUNDS):
                     device.fill_zero(arrivals)
-                    device.dispatch(RESTRUCTURE, n_tris, dict(fit_bufs, bvh_arrivals=arrivals, bvh_cut=cut), u)
+                    if waves is None:
+                        device.dispatch(RESTRUCTURE, n_tris, bufs, u)
+                    else:
+                        _restructure_in_waves(device, bufs, u, n_tris, *waves)
                 if device.read_uint(cut, 0):
                     raise device.loop_limit_error("the treelet restructuring's loops (a tree too deep to climb)")
                 stats["sah_cost"] = float(device.read(costs, np.float32, 1)[0]) / root_area if root_area > 0 else 0.0

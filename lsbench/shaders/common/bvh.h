@@ -178,7 +178,7 @@ INLINE void bvh_emit_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure)
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure) || defined(KERNEL_bvh_restructure_wave)
 // The box of triangle `tri` (world space).
 INLINE Box triangle_box(CTX_PARAM uint tri) {
     Triangle t = load_triangle(CTX_ARG tri);
@@ -198,7 +198,7 @@ INLINE Box bvh_child_box(CTX_PARAM uint c) {
 }
 #endif
 
-#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_restructure)
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_restructure) || defined(KERNEL_bvh_restructure_wave)
 #define BVH_COST_NODE 1.2f
 #define BVH_COST_TRI 1.0f
 
@@ -265,7 +265,22 @@ INLINE void bvh_fit_kernel(CTX_PARAM uint prim) {
 }
 #endif
 
-#ifdef KERNEL_bvh_restructure
+#if defined(KERNEL_bvh_restructure_wave) || defined(KERNEL_bvh_wave_start)
+// A wave's node counts its arrival at node_; the second to arrive queues node_ for the next wave
+// (bvh_restructure_wave_kernel below).
+#define BVH_WAVE_QUEUE(node_) if (ATOMIC_ADD(V(bvh_arrivals)[node_], 1u) == 1u) \
+        V(bvh_wave_out)[ATOMIC_ADD(V(bvh_wave_count)[0], 1u)] = node_;
+#endif
+
+#ifdef KERNEL_bvh_wave_start
+// The first wave of the restructuring in waves: the nodes both of whose children are primitives.
+INLINE void bvh_wave_start_kernel(CTX_PARAM uint prim) {
+    uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
+    if (node != BVH_NONE) BVH_WAVE_QUEUE(node)  // BVH_NONE: a tree of one primitive
+}
+#endif
+
+#if defined(KERNEL_bvh_restructure) || defined(KERNEL_bvh_restructure_wave)
 // ---- Build 5: treelet restructuring (Karras & Aila 2013, "Fast parallel construction of high-
 // quality bounding volume hierarchies"), one work item per primitive climbing as in the fit -----
 // At every node N of more than bvh_leaf_size triangles, once both its subtrees are done (an
@@ -378,6 +393,7 @@ INLINE void bvh_restructure(CTX_PARAM uint root) {
     }
 }
 
+#ifdef KERNEL_bvh_restructure
 INLINE void bvh_restructure_kernel(CTX_PARAM uint prim) {
     uint node = V(bvh_parents)[V(bvh_n) - 1u + prim];
     while (node != BVH_NONE) {
@@ -389,6 +405,24 @@ INLINE void bvh_restructure_kernel(CTX_PARAM uint prim) {
     }
     if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // geometry.h: the driver cut loops
 }
+#else
+// The same climbs in waves, where the lanes run in SIMD (llvmpipe, GPUs; bvh.py): a wave is the
+// nodes whose two subtrees are done, a work item each, which restructures its node and counts
+// its arrival at the parent; the second to arrive queues the parent for the next wave (the first
+// wave: the nodes both of whose children are primitives, bvh_wave_start_kernel). With one climb
+// per primitive, half the lanes of a SIMD group stop at every level while the group runs, masked,
+// as long as its longest climb, and llvmpipe runs the restructuring's loops once even where no
+// lane restructures (docs/linespace-build.md): BMW bvh glsl, bvh_restructure took 7.1 s of the
+// build's 7.6. The waves keep every lane on a node to restructure; the dispatch between two waves
+// orders their writes (no fences). The same trees, bit for bit.
+INLINE void bvh_restructure_wave_kernel(CTX_PARAM uint gid) {
+    uint node = V(bvh_wave_in)[gid];
+    if (V(bvh_counts)[node] > V(bvh_leaf_size)) bvh_restructure(CTX_ARG node);
+    uint parent = V(bvh_parents)[node];
+    if (parent != BVH_NONE) BVH_WAVE_QUEUE(parent)
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // geometry.h: the driver cut loops
+}
+#endif
 #endif
 
 #ifdef KERNEL_bvh_keep
