@@ -1017,6 +1017,18 @@ INLINE void ls_count_queued(CTX_PARAM uint cell_first, uint cell_end, uint shaft
 }
 #endif
 
+// The count's tally of an item's cell: its count (until ls_set_len_kernel puts what the fill needs
+// there) and the stats (a cell of one chunk with candidates; the candidates, in 64 bits).
+#ifndef LS_NO_ITEM_COUNTS
+#define LS_ITEM_COUNT(item, count) LS_ITEM_STORE(item, count);
+#else
+#define LS_ITEM_COUNT(item, count)
+#endif
+#define LS_TALLY(item, count) { LS_ITEM_COUNT(item, count) \
+        non_empty += chunks == 1u && (count) > 0u ? 1u : 0u; \
+        sum_hi += sum_lo + (count) < sum_lo ? 1u : 0u; \
+        sum_lo += (count); }
+
 INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint shafts = V(ls_shafts);
     uint grouped = V(ls_grouped);
@@ -1086,12 +1098,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
         uint bit = ls_row_start(CTX_ARG cell, shaft, end - begin) + (first_i - begin);
         uint count = 0u;
         for (uint w = 0u; 32u * w < len; ++w) count += POPCOUNT(ls_row_word(CTX_ARG bit, len, w));
-#ifndef LS_NO_ITEM_COUNTS
-        LS_ITEM_STORE(item, count);  // the count, until ls_set_len_kernel puts what the fill needs there
-#endif
-        non_empty += chunks == 1u && count > 0u ? 1u : 0u;
-        sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
-        sum_lo += count;
+        LS_TALLY(item, count)
     }
 #endif
 #else
@@ -1149,12 +1156,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
 #ifdef KERNEL_ls_fill
         ls_put_last(CTX_ARG first, count, pend);
 #else
-#ifndef LS_NO_ITEM_COUNTS
-        LS_ITEM_STORE(item, count);  // the count, until ls_set_len_kernel puts what the fill needs there
-#endif
-        non_empty += chunks == 1u && count > 0u ? 1u : 0u;
-        sum_hi += sum_lo + count < sum_lo ? 1u : 0u;
-        sum_lo += count;
+        LS_TALLY(item, count)
 #endif
 #endif
     }
