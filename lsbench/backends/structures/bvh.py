@@ -298,7 +298,8 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
                 cut = temp("bvh_cut", 4, zero=True)
                 bufs = dict(fit_bufs, bvh_arrivals=arrivals, bvh_cut=cut)
                 # one climb per primitive where work items run one after the other (bvh.h:
-                # bvh_restructure_kernel), else waves of climbers (bvh_restructure_wave_kernel)
+                # bvh_restructure_kernel), else waves of the nodes ready to restructure
+                # (bvh_restructure_wave_kernel)
                 waves = None if device.serial_work_items else (
                     temp("bvh_wave_a", 4 * n_tris), temp("bvh_wave_b", 4 * n_tris), temp("bvh_wave_count", 4))
                 for _ in range(TREELET_ROUNDS):

@@ -700,19 +700,29 @@ INLINE int ls_exact_meets(CTX_PARAM uint n, LsShaft sh, uint shaft, LS_TRI_PARAM
 // body once where no lane has an iteration, so each run pays one pass of every step: groups of
 // one-chunk cells queue their pairs instead (ls_count_queued); the fill, which lists a shaft's
 // candidates in order, and the cells of several chunks (full runs) use this.
-INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
-                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
-                         float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
-    uint live = 0u;  // 1. cull and 2. certain from the masks
+// Steps 1 (cull) and 2 (certain) from the masks for a run of span <= 32 candidates whose masks of
+// the shaft's patches start at ls_masks[ra] and ls_masks[rb]: (the bits of the candidates the
+// masks say meet the shaft, the bits of those they leave to step 3).
+INLINE uint2 ls_masks_run(CTX_PARAM uint ra, uint rb, uint span) {
     uint met = 0u;
+    uint live = 0u;
     for (uint k = 0u; k < span; ++k) {
-        uint ma = V(ls_masks)[ra + k0 + k];
-        uint mb = V(ls_masks)[rb + k0 + k];
+        uint ma = V(ls_masks)[ra + k];
+        uint mb = V(ls_masks)[rb + k];
         if ((ma & mb & LS_CULL_BITS) == 0u) {
             if (ls_masks_certain(ma, mb) != 0) met |= 1u << k;
             else live |= 1u << k;
         }
     }
+    return make_uint2(met, live);
+}
+
+INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint span, float eps, uint facets,
+                         uint n, LsShaft sh, uint shaft, float3 ca, float3 cb, float4 p0, float4 p1, float4 p2,
+                         float4 p3, float4 p4, float4 p5, float4 p6, float4 p7) {
+    uint2 masks = ls_masks_run(CTX_ARG ra + k0, rb + k0, span);
+    uint met = masks.x;
+    uint live = masks.y;
     uint undecided = 0u;  // 3. facet planes
     for (; live != 0u; live &= live - 1u) {
         uint k = LOWEST_BIT(live);
@@ -909,6 +919,15 @@ INLINE uint ls_item_first(CTX_PARAM uint item, uint chunk, uint left) {
 }
 #endif
 
+#if defined(KERNEL_ls_count) && defined(LS_PAIR_BITS)
+// The bits `met` of a run of candidates into ls_pair_bits from bit `at`: one or two words, which
+// neighbouring items share.
+INLINE void ls_bits_or_run(CTX_PARAM uint at, uint met) {
+    if (met != 0u) LS_BITS_OR(at >> 5u, met << (at & 31u));
+    if ((at & 31u) != 0u && (met >> (32u - (at & 31u))) != 0u) LS_BITS_OR((at >> 5u) + 1u, met >> (32u - (at & 31u)));
+}
+#endif
+
 #ifdef LS_PAIR_QUEUE
 // The count of a group of one-chunk cells where the lanes are shafts (llvmpipe, GPUs;
 // linespace.py _grouped_count): steps 1 and 2 (the masks) for runs of up to 32 candidates, cell
@@ -953,19 +972,10 @@ INLINE void ls_count_queued(CTX_PARAM uint cell_first, uint cell_end, uint shaft
             uint rb = cell_ref * patches + mask_b * len + k0;
             uint tri = cell_ref + k0;
             uint bit = ls_row_start(CTX_ARG cell, shaft, len) + k0;
-            uint live = 0u;  // 1. cull and 2. certain from the masks
-            uint met = 0u;
-            for (uint k = 0u; k < span; ++k) {
-                uint ma = V(ls_masks)[ra + k];
-                uint mb = V(ls_masks)[rb + k];
-                if ((ma & mb & LS_CULL_BITS) == 0u) {
-                    if (ls_masks_certain(ma, mb) != 0) met |= 1u << k;
-                    else live |= 1u << k;
-                }
-            }
-            // the run's certain bits: one or two words, which neighbouring items share
-            if (met != 0u) LS_BITS_OR(bit >> 5u, met << (bit & 31u));
-            if ((bit & 31u) != 0u && (met >> (32u - (bit & 31u))) != 0u) LS_BITS_OR((bit >> 5u) + 1u, met >> (32u - (bit & 31u)));
+            uint2 masks = ls_masks_run(CTX_ARG ra, rb, span);  // 1. cull and 2. certain
+            uint met = masks.x;
+            uint live = masks.y;
+            ls_bits_or_run(CTX_ARG bit, met);
             for (; live != 0u; live &= live - 1u) {
                 uint k = LOWEST_BIT(live);
                 q_tri[queued] = tri + k;
@@ -1145,12 +1155,7 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
             count += POPCOUNT(met);
 #endif
 #ifdef LS_PAIR_BITS
-            // the run's bits start at bit + k0: one or two words, which neighbouring items share
-            uint at = bit + k0;
-            if (met != 0u) LS_BITS_OR(at >> 5u, met << (at & 31u));
-            if ((at & 31u) != 0u && (met >> (32u - (at & 31u))) != 0u) {
-                LS_BITS_OR((at >> 5u) + 1u, met >> (32u - (at & 31u)));
-            }
+            ls_bits_or_run(CTX_ARG bit + k0, met);  // the run's bits start at bit + k0
 #endif
         }
 #ifdef KERNEL_ls_fill

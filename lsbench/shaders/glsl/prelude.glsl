@@ -20,6 +20,7 @@
 #define make_float4(x, y, z, w) vec4(x, y, z, w)
 #define make_int3(x, y, z) ivec3(x, y, z)
 #define make_uint4(x, y, z, w) uvec4(x, y, z, w)
+#define make_uint2(x, y) uvec2(x, y)
 #define make_uint3(x, y, z) uvec3(x, y, z)
 #define U32(x) uint(x)
 #define I32(x) int(x)

@@ -8,6 +8,7 @@
 #define make_float4(x, y, z, w) ((float4)((x), (y), (z), (w)))
 #define make_int3(x, y, z) ((int3)((x), (y), (z)))
 #define make_uint4(x, y, z, w) ((uint4)((x), (y), (z), (w)))
+#define make_uint2(x, y) ((uint2)((x), (y)))
 #define make_uint3(x, y, z) ((uint3)((x), (y), (z)))
 #define U32(x) ((uint)(x))
 #define I32(x) ((int)(x))
