@@ -56,7 +56,7 @@ def test_slices_give_the_hits_of_one_launch(tiny_rays, structure, backend, query
         hit = whole.prim_ids >= 0
         assert 0.2 < hit.mean() < 0.95  # rays that hit and rays that miss
         slices = {}
-        for budget in (16, 1000):
+        for budget in (backends.MIN_SLICE_BUDGET, 16, 1000):
             part = backends.trace(built, rays, budget=budget)
             slices[budget] = part.slices
             # a cell tested twice or skipped at a slice boundary would change some id, t or count
@@ -113,6 +113,13 @@ def test_budget_comes_from_the_device_or_the_environment(monkeypatch):
     monkeypatch.setenv("LSBENCH_SLICE_BUDGET", "0")
     with pytest.raises(ValueError, match="LSBENCH_SLICE_BUDGET"):
         backends.slice_budget(device)
+    # below 4 a ray could suspend at the same step in every launch (an octree leaf needs its tick,
+    # the walk's 2 extra loop iterations and one test)
+    monkeypatch.setenv("LSBENCH_SLICE_BUDGET", "3")
+    with pytest.raises(ValueError, match=">= 4 or 'none', got '3'"):
+        backends.slice_budget(device)
+    with pytest.raises(ValueError, match="got 3"):
+        backends.slice_budget(device, 3)
 
 
 # GLSL on llvmpipe: a few thousand incoherent rays on real scenes. Before the slices (main at
@@ -186,7 +193,7 @@ def test_records_name_the_slice_budget_in_force(monkeypatch):
     run = {b: execute(Case("cornell", "grid", b, "8", width=16, height=16), settings) for b in ("glsl", "opencl")}
     assert run["glsl"]["slice_budget"] == backends.get_device("glsl").loop_budget
     assert run["opencl"]["slice_budget"] is None and run["opencl"]["trace_slices"] == 1
-    monkeypatch.setenv("LSBENCH_SLICE_BUDGET", "2")
+    monkeypatch.setenv("LSBENCH_SLICE_BUDGET", "4")
     forced = execute(Case("cornell", "grid", "opencl", "8", width=16, height=16), settings)
     assert forced["status"] == "ok" and forced["unexplained"] == 0
-    assert forced["slice_budget"] == 2 and forced["trace_slices"] > 1
+    assert forced["slice_budget"] == 4 and forced["trace_slices"] > 1

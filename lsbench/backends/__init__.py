@@ -40,6 +40,10 @@ BACKENDS = ("glsl", "opencl")
 LOOP_CUT_PRIM = -2
 # Hit id of a ray a sliced launch suspended (SLICE_PENDING, shaders/common/trace.h).
 SLICE_PENDING = -3
+# The smallest slice budget that always gets a ray further: a resumed step pays its tick, the 2
+# loop iterations of an octree walk's return to a leaf (trace.h: trace_revisit) and then at least
+# one candidate test. Below it a ray could suspend at the same place in every launch.
+MIN_SLICE_BUDGET = 4
 # Marks "no budget given" apart from None (unbounded) in trace() and time_trace().
 DEVICE_BUDGET = "device"
 _devices: dict[str, Device] = {}
@@ -331,11 +335,11 @@ def slice_budget(device: Device, budget=DEVICE_BUDGET) -> int | None:
             return device.loop_budget
         if forced == "none":
             return None
-        if not forced.isdigit() or int(forced) < 1:
-            raise ValueError(f"LSBENCH_SLICE_BUDGET must be a positive integer or 'none', got {forced!r}")
+        if not forced.isdigit() or int(forced) < MIN_SLICE_BUDGET:
+            raise ValueError(f"LSBENCH_SLICE_BUDGET must be an integer >= {MIN_SLICE_BUDGET} or 'none', got {forced!r}")
         budget = int(forced)
-    if budget is not None and int(budget) < 1:
-        raise ValueError(f"a slice budget must be a positive integer or None, got {budget!r}")
+    if budget is not None and int(budget) < MIN_SLICE_BUDGET:
+        raise ValueError(f"a slice budget must be an integer >= {MIN_SLICE_BUDGET} or None, got {budget!r}")
     return None if budget is None else int(budget)
 
 
@@ -349,7 +353,7 @@ def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int
     rays, `budget` loop iterations each, until every ray has its hit; returns the launches made.
     hit_prim says which rays are left (SLICE_PENDING); a ray whose loops the driver still cut
     (LOOP_CUT_PRIM: llvmpipe's limit is per SIMD group) kept its earlier state and runs again with
-    half the budget; cut at a budget of 1, the case fails naming the limit. `first`: the first
+    half the budget; cut at MIN_SLICE_BUDGET, the case fails naming the limit. `first`: the first
     slice's ray list when the rays go in another order than given (ray_order: order_ids, read
     back; the later lists keep its order)."""
     state = bufs["slice_state"]
@@ -364,10 +368,10 @@ def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int
         prim = d.read(bufs["hit_prim"], np.int32, n)
         cut = prim[pending] == LOOP_CUT_PRIM
         if cut.any():
-            if budget == 1:
+            if budget <= MIN_SLICE_BUDGET:
                 raise d.loop_limit_error(f"the traversal loops of {int(cut.sum())} of {n} rays at a slice "
-                                         "budget of 1 loop iteration per ray")
-            budget = max(1, budget // 2)
+                                         f"budget of {budget} loop iterations per ray")
+            budget = max(MIN_SLICE_BUDGET, budget // 2)
         pending = pending[(prim[pending] == SLICE_PENDING) | cut]
     return slices
 

@@ -78,7 +78,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         "linespace_skipped_voxels": non_empty - n_cells,
         "bytes": {name: b.used for name, b in buffers.items()},
     })
-    return BuildResult(buffers, u, ls.trace_spec(TRACE_GRID_LS), stats)
+    return BuildResult(buffers, u, ls.trace_spec(grid.walk(TRACE_GRID_LS, device)), stats)
 
 
 def predicted_bytes(device: Device, voxels: int, references: int, ls_cells: int,

@@ -129,81 +129,105 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                 node = (d_anc >> 8) + rank_in_word(d_anc & 0xffu, a_slot);
             }
         }
-        while (scale < ESVO_SMAX) {
-            tr = trace_tick(tr);
-            if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
-            if (desc == 0u) desc = V(esvo_nodes)[parent];
-            float tx_corner = pos.x * tx_coef - tx_bias;
-            float ty_corner = pos.y * ty_coef - ty_bias;
-            float tz_corner = pos.z * tz_coef - tz_bias;
-            float tc_max = min(min(tx_corner, ty_corner), tz_corner);  // the cell's exit
-            uint slot = idx ^ mirror;
-            if (((desc >> slot) & 1u) != 0u && t_min <= t_max) {
-                float tv_max = min(t_max, tc_max);
-                float half_edge = scale_exp2 * 0.5f;
-                float tx_center = half_edge * tx_coef + tx_corner;
-                float ty_center = half_edge * ty_coef + ty_corner;
-                float tz_center = half_edge * tz_coef + tz_corner;
-                if (t_min <= tv_max) {
-                    uint child = (desc >> 8) + rank_in_word(desc & 0xffu, slot);
-                    if (scale == leaf_scale) {
-                        // Leaf: test its candidates; done once the closest hit lies in it.
-                        float t_exit = tc_max / dlen;
-                        tr = oct_test_leaf(CTX_ARG tr, gr, child, esvo_leaf_cell(pos, scale_exp2, mirror, res),
-                                           make_float2(t_min / dlen, t_exit));
-                        if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
-                        if (trace_done(tr, gr.t_base + t_exit) != 0) break;
-                    } else {
-                        // PUSH: remember the parent. (LK10 skips the write when the ray leaves
-                        // the parent together with this child, so no POP can land there; in
-                        // float32 a ray along an edge can still pop into that scale and read an
-                        // older subtree's entry. Written always, the stack holds exactly the
-                        // ancestors of the current cell, which a resumed slice recomputes.)
-                        stack_node[scale - leaf_scale - 1] = parent;
-                        stack_tmax[scale - leaf_scale - 1] = t_max;
-                        parent = child;
-                        idx = 0u;
-                        scale -= 1;
-                        scale_exp2 = half_edge;
-                        if (tx_center > t_min) { idx ^= 1u; pos.x += scale_exp2; }
-                        if (ty_center > t_min) { idx ^= 2u; pos.y += scale_exp2; }
-                        if (tz_center > t_min) { idx ^= 4u; pos.z += scale_exp2; }
-                        t_max = tv_max;
-                        desc = 0u;
-                        continue;
+        // The steps that test no candidates (PUSH, ADVANCE, POP, empty children) run in the inner
+        // loop and a leaf's candidates in the outer one (the "while-while" loops of Aila & Laine
+        // 2009): llvmpipe runs a loop's body once even where no lane iterates it, so a candidate
+        // loop inside every step cost a triangle test per step (docs/profiles.md, section 17:
+        // 0.66-0.80 of the device time; PoCL the same within 1 %). After the leaf the inner loop
+        // takes the same cell again (leaf_done) without counting a step, and advances past it.
+        int leaf_done = 0;
+        for (;;) {
+            int at_leaf = 0;
+            uint leaf = 0u;
+            float leaf_exit = 0.0f;
+            while (scale < ESVO_SMAX) {
+                if (leaf_done == 0) {  // (the leaf just tested was counted when the walk reached it)
+                    tr = trace_tick(tr);
+                    if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
+                }
+                if (desc == 0u) desc = V(esvo_nodes)[parent];
+                float tx_corner = pos.x * tx_coef - tx_bias;
+                float ty_corner = pos.y * ty_coef - ty_bias;
+                float tz_corner = pos.z * tz_coef - tz_bias;
+                float tc_max = min(min(tx_corner, ty_corner), tz_corner);  // the cell's exit
+                uint slot = idx ^ mirror;
+                if (((desc >> slot) & 1u) != 0u && t_min <= t_max) {
+                    float tv_max = min(t_max, tc_max);
+                    float half_edge = scale_exp2 * 0.5f;
+                    float tx_center = half_edge * tx_coef + tx_corner;
+                    float ty_center = half_edge * ty_coef + ty_corner;
+                    float tz_center = half_edge * tz_coef + tz_corner;
+                    if (t_min <= tv_max) {
+                        uint child = (desc >> 8) + rank_in_word(desc & 0xffu, slot);
+                        if (scale == leaf_scale) {
+                            if (leaf_done == 0) {  // to the outer loop, which tests it
+                                at_leaf = 1;
+                                leaf = child;
+                                leaf_exit = tc_max / dlen;
+                                tr = trace_revisit(tr, 2u);  // the outer loop and the inner loop's return
+                                if (TRACE_SUSPENDED(tr)) tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max);
+                                break;
+                            }
+                        } else {
+                            // PUSH: remember the parent. (LK10 skips the write when the ray leaves
+                            // the parent together with this child, so no POP can land there; in
+                            // float32 a ray along an edge can still pop into that scale and read an
+                            // older subtree's entry. Written always, the stack holds exactly the
+                            // ancestors of the current cell, which a resumed slice recomputes.)
+                            stack_node[scale - leaf_scale - 1] = parent;
+                            stack_tmax[scale - leaf_scale - 1] = t_max;
+                            parent = child;
+                            idx = 0u;
+                            scale -= 1;
+                            scale_exp2 = half_edge;
+                            if (tx_center > t_min) { idx ^= 1u; pos.x += scale_exp2; }
+                            if (ty_center > t_min) { idx ^= 2u; pos.y += scale_exp2; }
+                            if (tz_center > t_min) { idx ^= 4u; pos.z += scale_exp2; }
+                            t_max = tv_max;
+                            desc = 0u;
+                            continue;
+                        }
                     }
                 }
+                // ADVANCE: step across the exit face(s).
+                leaf_done = 0;
+                uint step_mask = 0u;
+                if (tx_corner <= tc_max) { step_mask ^= 1u; pos.x -= scale_exp2; }
+                if (ty_corner <= tc_max) { step_mask ^= 2u; pos.y -= scale_exp2; }
+                if (tz_corner <= tc_max) { step_mask ^= 4u; pos.z -= scale_exp2; }
+                t_min = tc_max;
+                if (t_min > t_end) break;
+                idx ^= step_mask;
+                if ((idx & step_mask) != 0u) {
+                    // POP: the step left the parent. The highest bit in which the stepped
+                    // coordinates changed is the scale of the ancestor that still holds the ray.
+                    uint differing = 0u;
+                    if ((step_mask & 1u) != 0u) differing |= as_uint(pos.x) ^ as_uint(pos.x + scale_exp2);
+                    if ((step_mask & 2u) != 0u) differing |= as_uint(pos.y) ^ as_uint(pos.y + scale_exp2);
+                    if ((step_mask & 4u) != 0u) differing |= as_uint(pos.z) ^ as_uint(pos.z + scale_exp2);
+                    scale = I32(as_uint(F32(differing)) >> 23) - 127;  // floor(log2): exact below 2^24
+                    if (scale >= ESVO_SMAX) break;  // left the root
+                    scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
+                    parent = stack_node[scale - leaf_scale - 1];
+                    t_max = stack_tmax[scale - leaf_scale - 1];
+                    // Round the position down to the cell of that scale; its bits give the slot.
+                    uint shx = as_uint(pos.x) >> U32(scale);
+                    uint shy = as_uint(pos.y) >> U32(scale);
+                    uint shz = as_uint(pos.z) >> U32(scale);
+                    pos.x = as_float(shx << U32(scale));
+                    pos.y = as_float(shy << U32(scale));
+                    pos.z = as_float(shz << U32(scale));
+                    idx = (shx & 1u) | ((shy & 1u) << 1) | ((shz & 1u) << 2);
+                    desc = 0u;
+                }
             }
-            // ADVANCE: step across the exit face(s).
-            uint step_mask = 0u;
-            if (tx_corner <= tc_max) { step_mask ^= 1u; pos.x -= scale_exp2; }
-            if (ty_corner <= tc_max) { step_mask ^= 2u; pos.y -= scale_exp2; }
-            if (tz_corner <= tc_max) { step_mask ^= 4u; pos.z -= scale_exp2; }
-            t_min = tc_max;
-            if (t_min > t_end) break;
-            idx ^= step_mask;
-            if ((idx & step_mask) != 0u) {
-                // POP: the step left the parent. The highest bit in which the stepped
-                // coordinates changed is the scale of the ancestor that still holds the ray.
-                uint differing = 0u;
-                if ((step_mask & 1u) != 0u) differing |= as_uint(pos.x) ^ as_uint(pos.x + scale_exp2);
-                if ((step_mask & 2u) != 0u) differing |= as_uint(pos.y) ^ as_uint(pos.y + scale_exp2);
-                if ((step_mask & 4u) != 0u) differing |= as_uint(pos.z) ^ as_uint(pos.z + scale_exp2);
-                scale = I32(as_uint(F32(differing)) >> 23) - 127;  // floor(log2): exact below 2^24
-                if (scale >= ESVO_SMAX) break;  // left the root
-                scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
-                parent = stack_node[scale - leaf_scale - 1];
-                t_max = stack_tmax[scale - leaf_scale - 1];
-                // Round the position down to the cell of that scale; its bits give the slot.
-                uint shx = as_uint(pos.x) >> U32(scale);
-                uint shy = as_uint(pos.y) >> U32(scale);
-                uint shz = as_uint(pos.z) >> U32(scale);
-                pos.x = as_float(shx << U32(scale));
-                pos.y = as_float(shy << U32(scale));
-                pos.z = as_float(shz << U32(scale));
-                idx = (shx & 1u) | ((shy & 1u) << 1) | ((shz & 1u) << 2);
-                desc = 0u;
-            }
+            if (TRACE_SUSPENDED(tr) || at_leaf == 0) break;
+            // Leaf: test its candidates; done once the closest hit lies in it.
+            tr = oct_test_leaf(CTX_ARG tr, gr, leaf, esvo_leaf_cell(pos, scale_exp2, mirror, res),
+                               make_float2(t_min / dlen, leaf_exit));
+            if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
+            if (trace_done(tr, gr.t_base + leaf_exit) != 0) break;
+            leaf_done = 1;
         }
     }
     return trace_finish(CTX_ARG tr, id);

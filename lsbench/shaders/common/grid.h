@@ -131,8 +131,9 @@ INLINE void voxelize_column(CTX_PARAM uint tri, int w, int cu, int cv) {
 // knows where the ray's line enters it (t_in, through a face of axis axis_in) and leaves it
 // (t_exit, axis_out); the exit of one voxel is the entry of the next (the step crosses exactly
 // that face), so each boundary is computed once (Alg. 2, lines 7, 12-13). The walk ends once the
-// closest hit lies before the voxel's exit (trace.h: test_candidates, trace_done).
-STRUCT(GridStep) { int3 cell; float t_in; int axis_in; float t_exit; int axis_out; };
+// closest hit lies before the voxel's exit (trace.h: test_candidates, trace_done). `next`: the
+// parameter of the next voxel boundary on each axis, stepped incrementally (Amanatides & Woo's tMax).
+STRUCT(GridStep) { int3 cell; float t_in; int axis_in; float t_exit; int axis_out; float3 next; };
 
 #ifdef LEAF_LINE_SPACE
 INLINE Candidates gls_voxel_shaft(CTX_PARAM Candidates list, uint vox, GridRay g, GridStep s);  // grid_ls.h
@@ -147,12 +148,42 @@ INLINE Candidates grid_voxel(CTX_PARAM GridRay g, GridStep s) {
     return c;
 }
 
+// The voxel's exit: the nearest of the next boundaries (s.next, the parameter of the next face on
+// each axis; an axis the ray does not move along holds INF_F and never wins).
+INLINE GridStep grid_exit(GridStep s) {
+    s.t_exit = min(s.next.x, min(s.next.y, s.next.z));
+    s.axis_out = (s.next.x <= s.next.y && s.next.x <= s.next.z) ? 0 : (s.next.y <= s.next.z ? 1 : 2);
+    return s;
+}
+
+// The step across the exit face (dir: +-1 per axis, dt: the parameter one voxel spans per axis):
+// the exit becomes the next voxel's entry (grid_inside says whether the step left the grid).
+INLINE GridStep grid_cross(GridStep s, int3 dir, float3 dt) {
+    if (s.axis_out == 0) {
+        s.cell.x += dir.x;
+        s.next.x += dt.x;
+    } else if (s.axis_out == 1) {
+        s.cell.y += dir.y;
+        s.next.y += dt.y;
+    } else {
+        s.cell.z += dir.z;
+        s.next.z += dt.z;
+    }
+    s.axis_in = s.axis_out;
+    s.t_in = s.t_exit;
+    return s;
+}
+
+INLINE int grid_inside(int3 c, int3 r) {
+    return (c.x >= 0 && c.y >= 0 && c.z >= 0 && c.x < r.x && c.y < r.y && c.z < r.z) ? 1 : 0;
+}
+
 // The walk's loop state in the slice words (trace.h): the voxel about to be visited, its entry,
 // and the next boundary on each axis (the incremental values themselves, so the resumed walk
 // steps exactly as one launch would).
-INLINE Trace grid_suspend(Trace tr, GridStep s, float nx, float ny, float nz) {
+INLINE Trace grid_suspend(Trace tr, GridStep s) {
     tr.wa = make_uint4(U32(s.cell.x), U32(s.cell.y), U32(s.cell.z), U32(s.axis_in));
-    tr.wb = make_uint4(as_uint(s.t_in), as_uint(nx), as_uint(ny), as_uint(nz));
+    tr.wb = make_uint4(as_uint(s.t_in), as_uint(s.next.x), as_uint(s.next.y), as_uint(s.next.z));
     return tr;
 }
 
@@ -167,11 +198,12 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
         s.cell = clamp(make_int3(I32(floor(p.x)), I32(floor(p.y)), I32(floor(p.z))),
                        make_int3(0, 0, 0), r - make_int3(1, 1, 1));
         int sx = g.d.x > 0.0f ? 1 : -1, sy = g.d.y > 0.0f ? 1 : -1, sz = g.d.z > 0.0f ? 1 : -1;
+        int3 dir = make_int3(sx, sy, sz);
+        float3 dt = make_float3(fabs(g.inv.x), fabs(g.inv.y), fabs(g.inv.z));
         // Parameter of the next boundary on each axis; an axis the ray does not move along never wins.
-        float nx = g.d.x == 0.0f ? INF_F : (F32(s.cell.x + (sx > 0 ? 1 : 0)) - g.o.x) * g.inv.x;
-        float ny = g.d.y == 0.0f ? INF_F : (F32(s.cell.y + (sy > 0 ? 1 : 0)) - g.o.y) * g.inv.y;
-        float nz = g.d.z == 0.0f ? INF_F : (F32(s.cell.z + (sz > 0 ? 1 : 0)) - g.o.z) * g.inv.z;
-        float dx = fabs(g.inv.x), dy = fabs(g.inv.y), dz = fabs(g.inv.z);
+        s.next.x = g.d.x == 0.0f ? INF_F : (F32(s.cell.x + (sx > 0 ? 1 : 0)) - g.o.x) * g.inv.x;
+        s.next.y = g.d.y == 0.0f ? INF_F : (F32(s.cell.y + (sy > 0 ? 1 : 0)) - g.o.y) * g.inv.y;
+        s.next.z = g.d.z == 0.0f ? INF_F : (F32(s.cell.z + (sz > 0 ? 1 : 0)) - g.o.z) * g.inv.z;
         // Entry of the first voxel: where the ray's line enters it, also when the origin lies
         // inside (a Line Space shaft of the whole chord holds the part the ray covers).
         float qx = g.d.x == 0.0f ? -INF_F : (F32(s.cell.x + (sx > 0 ? 0 : 1)) - g.o.x) * g.inv.x;
@@ -183,31 +215,40 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
             s.cell = make_int3(I32(tr.wa.x), I32(tr.wa.y), I32(tr.wa.z));
             s.axis_in = I32(tr.wa.w);
             s.t_in = as_float(tr.wb.x);
-            nx = as_float(tr.wb.y);
-            ny = as_float(tr.wb.z);
-            nz = as_float(tr.wb.w);
+            s.next = make_float3(as_float(tr.wb.y), as_float(tr.wb.z), as_float(tr.wb.w));
         }
         for (;;) {
+#ifdef GRID_SKIP_EMPTY
+            // Empty voxels are crossed in an inner loop and a voxel's candidates tested in the outer
+            // one (the "while-while" loops of Aila & Laine 2009; where and why: grid.py, walk). The
+            // steps, their order and the hits are the one loop's below.
+            int walking = 1;
+            for (;;) {
+                tr = trace_tick(tr);
+                if (TRACE_SUSPENDED(tr)) break;
+                s = grid_exit(s);
+                uint vox = voxel_index(CTX_ARG s.cell);
+                if (V(voxel_offsets)[vox + 1u] > V(voxel_offsets)[vox]) {
+                    tr = trace_revisit(tr, 1u);
+                    break;
+                }
+                if (trace_done(tr, g.t_base + s.t_exit) != 0 || s.t_exit >= t1) { walking = 0; break; }
+                s = grid_cross(s, dir, dt);
+                if (grid_inside(s.cell, r) == 0) { walking = 0; break; }
+            }
+            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s); break; }
+            if (walking == 0) break;
+#else
             tr = trace_tick(tr);
-            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s, nx, ny, nz); break; }
-            s.t_exit = min(nx, min(ny, nz));
-            s.axis_out = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
+            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s); break; }
+            s = grid_exit(s);
+#endif
             tr = test_candidates(CTX_ARG tr, grid_voxel(CTX_ARG g, s));
-            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s, nx, ny, nz); break; }
+            if (TRACE_SUSPENDED(tr)) { tr = grid_suspend(tr, s); break; }
             if (trace_done(tr, g.t_base + s.t_exit) != 0) break;
             if (s.t_exit >= t1) break;
-            if (s.axis_out == 0) {
-                s.cell.x += sx; nx += dx;
-                if (s.cell.x < 0 || s.cell.x >= r.x) break;
-            } else if (s.axis_out == 1) {
-                s.cell.y += sy; ny += dy;
-                if (s.cell.y < 0 || s.cell.y >= r.y) break;
-            } else {
-                s.cell.z += sz; nz += dz;
-                if (s.cell.z < 0 || s.cell.z >= r.z) break;
-            }
-            s.axis_in = s.axis_out;
-            s.t_in = s.t_exit;
+            s = grid_cross(s, dir, dt);
+            if (grid_inside(s.cell, r) == 0) break;
         }
     }
     return trace_finish(CTX_ARG tr, id);

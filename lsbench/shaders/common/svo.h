@@ -66,59 +66,81 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                 stack[l] = V(svo_nodes)[8u * stack[l - 1] + slot];
             }
         }
+        // The steps that test no candidates (descents, empty children, advances) run in the inner
+        // loop and a leaf's candidates in the outer one (esvo.h says why): after the leaf the inner
+        // loop takes the same cell again (leaf_done) without counting a step, and advances past it.
+        int leaf_done = 0;
         for (;;) {
-            tr = trace_tick(tr);
-            if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
-            float fs = F32(size);
-            // Exit distance of the cell on each axis (an axis the ray does not move along never wins).
-            float nx = dg.x == 0.0f ? INF_F : (F32(cell.x + (sx > 0 ? 1 : 0)) * fs - og.x) * inv.x;
-            float ny = dg.y == 0.0f ? INF_F : (F32(cell.y + (sy > 0 ? 1 : 0)) * fs - og.y) * inv.y;
-            float nz = dg.z == 0.0f ? INF_F : (F32(cell.z + (sz > 0 ? 1 : 0)) * fs - og.z) * inv.z;
-            float t_exit = min(nx, min(ny, nz));
-            uint slot = U32(cell.x & 1) | (U32(cell.y & 1) << 1) | (U32(cell.z & 1) << 2);
-            uint child = V(svo_nodes)[8u * stack[level - 1] + slot];
-            if (child != 0u) {
-                if (level == OCT_DEPTH) {
-                    // At the last level `cell` is the leaf's voxel, and the walk's stretch in it
-                    // ends at the chord's own exit (the same arithmetic): t_exit stands for both ends.
-                    tr = oct_test_leaf(CTX_ARG tr, gr, child - 1u, cell, make_float2(t_exit, t_exit));
-                    if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
-                    if (trace_done(tr, gr.t_base + t_exit) != 0) break;
-                } else {
-                    // Descend (lines 11-18): enter the child octant that holds the entry point.
-                    float ex = dg.x == 0.0f ? -INF_F : (F32(cell.x + (sx > 0 ? 0 : 1)) * fs - og.x) * inv.x;
-                    float ey = dg.y == 0.0f ? -INF_F : (F32(cell.y + (sy > 0 ? 0 : 1)) * fs - og.y) * inv.y;
-                    float ez = dg.z == 0.0f ? -INF_F : (F32(cell.z + (sz > 0 ? 0 : 1)) * fs - og.z) * inv.z;
-                    float t_in = max(t0, max(ex, max(ey, ez)));
-                    stack[level] = child;
-                    level += 1;
-                    size >>= 1;
-                    float hs = F32(size);
-                    float3 q = og + dg * t_in;
-                    int3 base = make_int3(2 * cell.x, 2 * cell.y, 2 * cell.z);
-                    int3 sub = make_int3(I32(floor(q.x / hs)), I32(floor(q.y / hs)), I32(floor(q.z / hs))) - base;
-                    cell = base + clamp(sub, make_int3(0, 0, 0), make_int3(1, 1, 1));
-                    continue;
-                }
-            }
-            if (t_exit >= t1) break;
-            // Advance to the neighbour across the exit face; go up while it is outside the parent.
-            int axis = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
-            int left_root = 0;
+            int at_leaf = 0;
+            uint leaf = 0u;
+            float leaf_exit = 0.0f;
             for (;;) {
-                int c = axis == 0 ? cell.x : (axis == 1 ? cell.y : cell.z);
-                int s = axis == 0 ? sx : (axis == 1 ? sy : sz);
-                int nc = c + s;
-                if ((nc >> 1) == (c >> 1)) {
-                    if (axis == 0) cell.x = nc; else if (axis == 1) cell.y = nc; else cell.z = nc;
-                    break;
+                if (leaf_done == 0) {  // (the leaf just tested was counted when the walk reached it)
+                    tr = trace_tick(tr);
+                    if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
                 }
-                level -= 1;
-                if (level == 0) { left_root = 1; break; }
-                cell = make_int3(cell.x >> 1, cell.y >> 1, cell.z >> 1);
-                size <<= 1;
+                float fs = F32(size);
+                // Exit distance of the cell on each axis (an axis the ray does not move along never wins).
+                float nx = dg.x == 0.0f ? INF_F : (F32(cell.x + (sx > 0 ? 1 : 0)) * fs - og.x) * inv.x;
+                float ny = dg.y == 0.0f ? INF_F : (F32(cell.y + (sy > 0 ? 1 : 0)) * fs - og.y) * inv.y;
+                float nz = dg.z == 0.0f ? INF_F : (F32(cell.z + (sz > 0 ? 1 : 0)) * fs - og.z) * inv.z;
+                float t_exit = min(nx, min(ny, nz));
+                uint slot = U32(cell.x & 1) | (U32(cell.y & 1) << 1) | (U32(cell.z & 1) << 2);
+                uint child = V(svo_nodes)[8u * stack[level - 1] + slot];
+                if (child != 0u) {
+                    if (level == OCT_DEPTH) {
+                        if (leaf_done == 0) {  // to the outer loop, which tests it
+                            at_leaf = 1;
+                            leaf = child - 1u;
+                            leaf_exit = t_exit;
+                            tr = trace_revisit(tr, 2u);  // the outer loop and the inner loop's return
+                            if (TRACE_SUSPENDED(tr)) tr = svo_suspend(tr, level, cell);
+                            break;
+                        }
+                    } else {
+                        // Descend (lines 11-18): enter the child octant that holds the entry point.
+                        float ex = dg.x == 0.0f ? -INF_F : (F32(cell.x + (sx > 0 ? 0 : 1)) * fs - og.x) * inv.x;
+                        float ey = dg.y == 0.0f ? -INF_F : (F32(cell.y + (sy > 0 ? 0 : 1)) * fs - og.y) * inv.y;
+                        float ez = dg.z == 0.0f ? -INF_F : (F32(cell.z + (sz > 0 ? 0 : 1)) * fs - og.z) * inv.z;
+                        float t_in = max(t0, max(ex, max(ey, ez)));
+                        stack[level] = child;
+                        level += 1;
+                        size >>= 1;
+                        float hs = F32(size);
+                        float3 q = og + dg * t_in;
+                        int3 base = make_int3(2 * cell.x, 2 * cell.y, 2 * cell.z);
+                        int3 sub = make_int3(I32(floor(q.x / hs)), I32(floor(q.y / hs)), I32(floor(q.z / hs))) - base;
+                        cell = base + clamp(sub, make_int3(0, 0, 0), make_int3(1, 1, 1));
+                        continue;
+                    }
+                }
+                leaf_done = 0;
+                if (t_exit >= t1) break;
+                // Advance to the neighbour across the exit face; go up while it is outside the parent.
+                int axis = (nx <= ny && nx <= nz) ? 0 : (ny <= nz ? 1 : 2);
+                int left_root = 0;
+                for (;;) {
+                    int c = axis == 0 ? cell.x : (axis == 1 ? cell.y : cell.z);
+                    int s = axis == 0 ? sx : (axis == 1 ? sy : sz);
+                    int nc = c + s;
+                    if ((nc >> 1) == (c >> 1)) {
+                        if (axis == 0) cell.x = nc; else if (axis == 1) cell.y = nc; else cell.z = nc;
+                        break;
+                    }
+                    level -= 1;
+                    if (level == 0) { left_root = 1; break; }
+                    cell = make_int3(cell.x >> 1, cell.y >> 1, cell.z >> 1);
+                    size <<= 1;
+                }
+                if (left_root != 0) break;
             }
-            if (left_root != 0) break;
+            if (TRACE_SUSPENDED(tr) || at_leaf == 0) break;
+            // At the last level `cell` is the leaf's voxel, and the walk's stretch in it ends at the
+            // chord's own exit (the same arithmetic): leaf_exit stands for both ends.
+            tr = oct_test_leaf(CTX_ARG tr, gr, leaf, cell, make_float2(leaf_exit, leaf_exit));
+            if (TRACE_SUSPENDED(tr)) { tr = svo_suspend(tr, level, cell); break; }
+            if (trace_done(tr, gr.t_base + leaf_exit) != 0) break;
+            leaf_done = 1;
         }
     }
     return trace_finish(CTX_ARG tr, id);

@@ -28,6 +28,8 @@
 //                  earlier slice; tr.wa / tr.wb hold the 8 words the walk saved, and the walk
 //                  restores its loop state from them instead of starting at the ray's entry.
 //   loop top       tr = trace_tick(tr);  if (TRACE_SUSPENDED(tr)) { save; break; }
+//   a cell's loop  tr = trace_revisit(tr, n);  where a step takes n more loop iterations than its
+//                  tick (the leaves of the octree walks, tested in an outer loop: svo.h, esvo.h)
 //   after a cell   tr = test_candidates(CTX_ARG tr, c);  if (TRACE_SUSPENDED(tr)) { save; break; }
 //                  (before trace_done: a cell whose list the budget cut must finish first)
 //   save           tr.wa = ...; tr.wb = ...;  the walk's loop state at the top of the iteration
@@ -40,7 +42,8 @@
 // follows them, at slice_list_base). A suspended ray reports SLICE_PENDING as its hit; a ray
 // whose loops the driver still cut (the budget is per lane, llvmpipe's limit per SIMD group, and
 // lanes diverge) reports LOOP_CUT_PRIM and keeps its state of before the slice, so the host
-// reruns it with a smaller budget; only at a budget of 1 is the cut a failure (the last guard).
+// reruns it with a smaller budget; only at the smallest (MIN_SLICE_BUDGET, backends/__init__.py)
+// is the cut a failure (the last guard).
 
 
 STRUCT(Ray) { float3 o; float tmin; float3 d; float tmax; };
@@ -196,6 +199,22 @@ INLINE Trace trace_tick(Trace tr) {
     tr.budget -= 1u;
 #endif
     tr.iterations += 1u;
+    return tr;
+}
+
+// Loop iterations besides trace_tick's for one step (a walk that crosses the cells without
+// candidates in an inner loop and tests a cell's candidates in the outer one: grid.h, svo.h, esvo.h):
+// paid from the budget too, since the driver counts every loop's iterations; with fewer than `n`
+// left the ray suspends before the step, which the resumed walk then takes (and counts) again.
+INLINE Trace trace_revisit(Trace tr, uint n) {
+#ifdef SLICED
+    if (tr.budget < n) {
+        tr.suspended = 1;
+        tr.iterations -= 1u;
+        return tr;
+    }
+    tr.budget -= n;
+#endif
     return tr;
 }
 
