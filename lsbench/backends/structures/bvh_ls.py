@@ -90,8 +90,13 @@ class LineSpaceBVH:
         stats.update(linespace.selection_stats(ls, stats["leaves"], k))
         stats.update({"linespace_leaves": n_cells, "linespace_skipped_leaves": stats["leaves"] - n_cells,
                       "bytes": {name: b.used for name, b in buffers.items()}})
-        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(bvh.traversal(TRACE_BVH_LS, stats, device)),
-                           stats)
+        spec = bvh.traversal(TRACE_BVH_LS, stats, device)
+        if not device.serial_work_items:
+            # A leaf's lookup and candidate loop outside the node visits' loop (bvh.h: BVH_WHILE_WHILE):
+            # llvmpipe paid them once per visit (docs/profiles.md, section 17: 0.77-0.92 of the device
+            # time; bvh's leaves of 2 gain nothing, PoCL neither).
+            spec = spec.with_defines(BVH_WHILE_WHILE=1)
+        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(spec), stats)
 
 
 bvh_ls = LineSpaceBVH()

@@ -897,6 +897,45 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         if (node == BVH_NONE) done = 1;                                                \
     }
 
+#ifdef BVH_WHILE_WHILE
+// The same walk with the leaves tested in an outer loop and the node visits and pops in an inner one
+// until the next entry is a leaf (the "while-while" loops of Aila & Laine 2009; the order of visits
+// and tests is the one above, so are the hits). Where a loop's body costs its time even when no
+// lane runs it (llvmpipe), the one loop paid a leaf's Line Space lookup and a candidate test once
+// per node visit: bvh-ls sets it there (bvh_ls.py; bvh's leaves of 2 gained nothing).
+#undef BVH_WALK
+#define BVH_WALK(VISIT, BOUND, LEAF, DONE)                                             \
+    uint stack[BVH_STACK];                                                             \
+    float stack_t[BVH_STACK];                                                          \
+    int sp = 0;                                                                        \
+    uint node = 0u;                                                                    \
+    for (;;) {                                                                         \
+        uint e = BVH_NONE;                                                             \
+        for (;;) {                                                                     \
+            if (node != BVH_NONE) {                                                    \
+                int base = sp;                                                         \
+                VISIT                                                                  \
+                node = BVH_NONE;                                                       \
+                if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {                   \
+                    sp -= 1;                                                           \
+                    node = stack[sp];                                                  \
+                    continue;                                                          \
+                }                                                                      \
+            }                                                                          \
+            e = BVH_NONE;                                                              \
+            while (sp > 0) {                                                           \
+                sp -= 1;                                                               \
+                if (stack_t[sp] <= (BOUND)) { e = stack[sp]; break; }                  \
+            }                                                                          \
+            if (e == BVH_NONE || (e & BVH_LEAF) != 0u) break;                          \
+            node = e;                                                                  \
+        }                                                                              \
+        if (e == BVH_NONE) break;                                                      \
+        LEAF                                                                           \
+        if (DONE) break;                                                               \
+    }
+#endif
+
 // The single ray's node visit: the slab test of a node's 4 slots at once in float4 lanes.
 #define BVH_VISIT_RAY {                                                                 \
         tr = trace_tick(tr);                                                           \
