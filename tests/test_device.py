@@ -29,3 +29,43 @@ def test_alloc_zeroed(device):
         assert not device.read(buf, np.uint32).any()
     finally:
         device.release(buf)
+
+
+def test_glsl_reads_structures_as_texels_within_the_driver_limit(monkeypatch):
+    """GLSL trace kernels read their structure as buffer textures ("t" buffers, kernels.Buf): the
+    device's per-buffer limit covers a uint buffer texture, the hits and work are OpenCL's, a
+    released buffer's textures go with it (GL may give its name to the next buffer), and a buffer
+    past the texel limit fails the launch naming it."""
+    from lsbench import backends
+    from lsbench.backends import BuildParams
+    from lsbench.backends.device import DeviceLimitError
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenes import load_scene
+
+    glsl = backends.get_device("glsl")
+    info = glsl.info()
+    assert glsl.max_buffer_bytes == min(int(glsl.ctx.info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"]),
+                                        4 * info["max_texture_buffer_texels"])
+    scene = load_scene("cornell")
+    rays = make_rays("primary", scene, 8, 8, None, ())
+    opencl = backends.get_device("opencl")
+    textures = len(glsl._textures.textures)
+    for res in (16, 4, 16):  # the octrees differ: a stale texture would read the last one's nodes
+        reference = backends.build(opencl, "esvo", scene, BuildParams(resolution=(res,) * 3))
+        built = backends.build(glsl, "esvo", scene, BuildParams(resolution=(res,) * 3))
+        try:
+            want, got = backends.trace(reference, rays, work=True), backends.trace(built, rays, work=True)
+            np.testing.assert_array_equal(got.prim_ids, want.prim_ids)
+            np.testing.assert_array_equal(got.work[:, :2], want.work[:, :2])  # steps, tests
+            assert (got.prim_ids >= 0).any()
+        finally:
+            built.release()
+            reference.release()
+        assert len(glsl._textures.textures) == textures  # released with their buffers
+    built = backends.build(glsl, "esvo", scene, BuildParams(resolution=(16,) * 3))
+    try:
+        monkeypatch.setattr(glsl._textures, "max_texels", 2)
+        with pytest.raises(DeviceLimitError, match=r"texels, over the driver's 2 per buffer texture \(GL_MAX_TEXTURE_BUFFER_SIZE\)"):
+            backends.trace(built, rays)
+    finally:
+        built.release()

@@ -2,6 +2,8 @@
 standalone EGL context, `#version 450` so the same sources run on Mesa llvmpipe and NVIDIA."""
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import dataclasses
 import math
 import time
@@ -10,7 +12,7 @@ import numpy as np
 
 from .device import (Device, DeviceBuffer, DeviceError, DeviceLimitError, Timing, check_item_count,
                      start_failure_hint)
-from .kernels import SHADER_ROOT, Buf, KernelSpec, kernel_defines, numbered, read_common
+from .kernels import SHADER_ROOT, TYPE_BYTES, Buf, KernelSpec, kernel_defines, numbered, read_common
 
 MAX_GROUPS = 65535  # per dispatch dimension, GL minimum and llvmpipe's value
 # Loop iterations per ray in one traversal launch on llvmpipe (Device.loop_budget): its limit of
@@ -40,10 +42,81 @@ def _prelude() -> str:
     return (SHADER_ROOT / "glsl" / "prelude.glsl").read_text()
 
 
+# Buffers bound as "t" (kernels.Buf): the sampler type a kernel declares and the texel format of the
+# buffer texture over the buffer's store, one texel per element (GL 4.5 core: glTexBuffer).
+TEXEL_FORMATS = {"uint": ("usamplerBuffer", 0x8236), "uint2": ("usamplerBuffer", 0x823C),  # R32UI, RG32UI
+                 "uint4": ("usamplerBuffer", 0x8D70), "float4": ("samplerBuffer", 0x8814)}  # RGBA32UI, RGBA32F
+GL_TEXTURE_BUFFER = 0x8C2A
+GL_TEXTURE0 = 0x84C0
+GL_MAX_TEXTURE_BUFFER_SIZE = 0x8C2B
+
+
+class _BufferTextures:
+    """Buffer textures over moderngl buffers (moderngl has no API for them): the GL entry points
+    through eglGetProcAddress, one texture per buffer and format, made on first use and deleted
+    with the buffer."""
+
+    def __init__(self):
+        egl = ctypes.CDLL(ctypes.util.find_library("EGL") or "libEGL.so.1")
+        egl.eglGetProcAddress.restype = ctypes.c_void_p
+        egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+
+        def gl(name, restype, *args):
+            address = egl.eglGetProcAddress(name.encode())
+            if not address:
+                raise DeviceError(f"the GL driver has no {name}")
+            return ctypes.CFUNCTYPE(restype, *args)(address)
+        u, i, p = ctypes.c_uint, ctypes.c_int, ctypes.POINTER(ctypes.c_uint)
+        self.gen = gl("glGenTextures", None, i, p)
+        self.delete = gl("glDeleteTextures", None, i, p)
+        self.bind = gl("glBindTexture", None, u, u)
+        self.tex_buffer = gl("glTexBuffer", None, u, u, u)
+        self.active = gl("glActiveTexture", None, u)
+        self.location = gl("glGetUniformLocation", i, u, ctypes.c_char_p)
+        self.uniform = gl("glProgramUniform1i", None, u, i, i)
+        get_integer = gl("glGetIntegerv", None, u, ctypes.POINTER(i))
+        value = i(0)
+        get_integer(GL_MAX_TEXTURE_BUFFER_SIZE, ctypes.byref(value))
+        self.max_texels = int(value.value)
+        self.textures: dict = {}  # (buffer glo, format) -> texture name
+        self.locations: dict = {}  # (program glo, name) -> uniform location
+
+    def bind_buffer(self, unit: int, prog, buf: DeviceBuffer, b: Buf) -> None:
+        sampler, fmt = TEXEL_FORMATS[b.type]
+        texels = buf.nbytes // TYPE_BYTES[b.type]
+        if texels > self.max_texels:
+            raise DeviceLimitError(f"buffer '{b.name}' holds {texels} texels, over the driver's {self.max_texels} "
+                                   "per buffer texture (GL_MAX_TEXTURE_BUFFER_SIZE)")
+        key = (buf.handle.glo, fmt)
+        tex = self.textures.get(key)
+        self.active(GL_TEXTURE0 + unit)  # before a new texture's first bind, which binds it to the active unit
+        if tex is None:
+            name = ctypes.c_uint(0)
+            self.gen(1, ctypes.byref(name))
+            tex = self.textures[key] = name.value
+            self.bind(GL_TEXTURE_BUFFER, tex)
+            self.tex_buffer(GL_TEXTURE_BUFFER, fmt, buf.handle.glo)
+        self.bind(GL_TEXTURE_BUFFER, tex)
+        loc = self.locations.get((prog.glo, b.name))
+        if loc is None:
+            loc = self.locations[(prog.glo, b.name)] = self.location(prog.glo, b.name.encode())
+        if loc >= 0:  # the compiler drops an unused sampler
+            self.uniform(prog.glo, loc, unit)
+
+    def forget(self, buf: DeviceBuffer) -> None:
+        for key in [k for k in self.textures if k[0] == buf.handle.glo]:
+            name = ctypes.c_uint(self.textures.pop(key))
+            self.delete(1, ctypes.byref(name))
+
+
 def declarations(spec: KernelSpec) -> str:
-    """std430 SSBOs (binding = position in spec.buffers) and plain uniforms."""
+    """std430 SSBOs (binding = position in spec.buffers), buffer textures for "t" buffers (a
+    sampler of the buffer's name, bound to a texture unit by _bind) and plain uniforms."""
     lines = []
     for binding, b in enumerate(spec.buffers):
+        if b.access == "t":
+            lines.append(f"uniform {TEXEL_FORMATS[b.type][0]} {b.name};")
+            continue
         qual = {"r": "readonly ", "w": "writeonly ", "rw": ""}[b.access]
         lines.append(f"layout(std430, binding = {binding}) {qual}buffer B_{b.name} "
                      f"{{ {b.type} {b.name}[]; }};")
@@ -70,7 +143,6 @@ def compute_source(spec: KernelSpec) -> str:
 
 class GLSLDevice(Device):
     backend = "glsl"
-    limit_name = "GL_MAX_SHADER_STORAGE_BLOCK_SIZE"
     line_space_test = "edges"  # llvmpipe: count 1.8x faster than the SAT, clipper 10x slower (docs/linespace-build.md)
 
     def __init__(self):
@@ -86,10 +158,15 @@ class GLSLDevice(Device):
                     "libgl1-mesa-dri`")) from exc
         self._programs: dict = {}
         self._scan_programs: dict = {}
+        self._textures = _BufferTextures()
         # Framebuffers by size, kept: releasing a bound framebuffer left the next draw failing
         # with GL_INVALID_OPERATION under moderngl 5.13 / llvmpipe.
         self._raster_targets: dict = {}
         self._max_ssbo = int(self.ctx.info["GL_MAX_SHADER_STORAGE_BLOCK_SIZE"])
+        # A buffer a trace kernel reads as texels ("t") must fit a buffer texture: 4 bytes per texel
+        # of a uint buffer (llvmpipe: 128 MiB of storage block against 512 MiB; a GPU's storage
+        # blocks may pass it, and its Line Spaces then split over more buffers).
+        self._max_buffer = min(self._max_ssbo, 4 * self._textures.max_texels)
         self._time_query = None  # one GL_TIME_ELAPSED query object, reused by every timed launch
         # The most voxels a triangle's bounds may hold for the compute voxelizer to take it
         # (voxelize); None: the raster pipeline takes every triangle.
@@ -104,14 +181,21 @@ class GLSLDevice(Device):
             "driver": i["GL_VERSION"],
             "vendor": i["GL_VENDOR"],
             "backend_version": f"moderngl {self.mgl.__version__}",
-            "max_buffer_bytes": self._max_ssbo,
+            "max_buffer_bytes": self._max_buffer,
+            "max_texture_buffer_texels": self._textures.max_texels,
             "shader_clock": "GL_ARB_shader_clock" in self.ctx.extensions,
             "int64": "GL_ARB_gpu_shader_int64" in self.ctx.extensions,
         }
 
     @property
     def max_buffer_bytes(self) -> int:
-        return self._max_ssbo
+        return self._max_buffer
+
+    @property
+    def limit_name(self) -> str:
+        if self._max_ssbo <= self._max_buffer:
+            return "GL_MAX_SHADER_STORAGE_BLOCK_SIZE"
+        return "GL_MAX_TEXTURE_BUFFER_SIZE, 4-byte texels"
 
     @property
     def is_llvmpipe(self) -> bool:
@@ -168,6 +252,7 @@ class GLSLDevice(Device):
         buf.handle.write(np.ascontiguousarray(array).tobytes(), offset=int(offset))
 
     def release(self, buf):
+        self._textures.forget(buf)
         buf.handle.release()
 
     # --- device clock ----------------------------------------------------------------------
@@ -195,9 +280,10 @@ class GLSLDevice(Device):
         prog = self._programs.get(spec.key)
         if prog is None:
             limit = int(self.ctx.info["GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS"])
-            if len(spec.buffers) > limit:  # the link would fail with a bare driver message
+            ssbos = sum(1 for b in spec.buffers if b.access != "t")
+            if ssbos > limit:  # the link would fail with a bare driver message
                 raise DeviceLimitError(
-                    f"{spec.name} binds {len(spec.buffers)} storage buffers, over the driver's {limit} "
+                    f"{spec.name} binds {ssbos} storage buffers, over the driver's {limit} "
                     "per compute shader (GL_MAX_COMPUTE_SHADER_STORAGE_BLOCKS)")
             src = compute_source(spec)
             try:
@@ -209,10 +295,15 @@ class GLSLDevice(Device):
 
     def _bind(self, prog, spec, n_items, buffers, uniforms):
         check_item_count(spec, n_items)
+        unit = 0
         for binding, b in enumerate(spec.buffers):
             if b.name not in buffers:
                 raise KeyError(f"{spec.name}: buffer '{b.name}' not given")
-            buffers[b.name].handle.bind_to_storage_buffer(binding)
+            if b.access == "t":
+                self._textures.bind_buffer(unit, prog, buffers[b.name], b)
+                unit += 1
+            else:
+                buffers[b.name].handle.bind_to_storage_buffer(binding)
         values = dict(uniforms or {})
         values["n_items"] = int(n_items)
         for name, value in values.items():
@@ -320,7 +411,7 @@ class GLSLDevice(Device):
             add.run(gx, math.ceil(blocks / gx), 1)
             self.ctx.memory_barrier()
         self.check_error("prefix sum")
-        sums.handle.release()
+        self.release(sums)
 
     def exclusive_scan(self, src, n, name):
         out = self.alloc(name, 4 * (n + 1), zero=True)

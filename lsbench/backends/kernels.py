@@ -27,7 +27,12 @@ TYPE_BYTES = {"float": 4, "uint": 4, "int": 4, "float4": 16, "uint4": 16, "int4"
 class Buf:
     name: str
     type: str  # element type, a key of TYPE_BYTES
-    access: str = "rw"  # "r", "w" or "rw"
+    # "r", "w" or "rw"; "t": read-only, and where the backend binds such buffers as textures (GLSL:
+    # a buffer texture) fetched as texels: the shared code reads it with LD_U / LD_U2 / LD_U4 / LD_F4
+    # (preludes) only, never V(name)[i]. llvmpipe loads an SSBO element lane by lane, each behind
+    # a bounds check and a branch, and a texel as one gather: random uvec4 loads took 2.2-2.6x as
+    # long from an SSBO (docs/profiles.md, section 17).
+    access: str = "rw"
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,7 @@ SCENE_BUFFERS = (Buf("vertices", "float", "r"), Buf("faces", "uint", "r"))
 # no difference resolved); builds keep vertices/faces. The traversals bind tri_verts only
 # (TRIANGLE_RECORDS: scene.h leaves out the indexed loads), so the records cost no storage-buffer
 # binding of the 16 GLSL allows (a Line Space split over 4 + 4 buffers, slices and counters).
-TRACE_SCENE_BUFFERS = (Buf("tri_verts", "float4", "r"),)
+TRACE_SCENE_BUFFERS = (Buf("tri_verts", "float4", "t"),)
 RAY_BUFFERS = (Buf("rays", "float4", "r"), Buf("hit_prim", "int", "w"), Buf("hit_t", "float", "w"))
 # What every traversal kernel reads besides its structure: trace.h (rays, hits, the candidate loop
 # over voxel_tris) after the scene and, for Line Space kernels, linespace.h.

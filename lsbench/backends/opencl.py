@@ -28,7 +28,7 @@ def kernel_source(spec: KernelSpec) -> str:
     """Ctx struct with every buffer pointer and scalar, the shared code, and the entry point."""
     fields, params, assigns = [], [], []
     for b in spec.buffers:
-        const = "const " if b.access == "r" else ""
+        const = "const " if b.access in ("r", "t") else ""
         decl = f"__global {const}{CL_TYPES[b.type]}* {b.name}"
         fields.append(f"    {decl};")
         params.append(decl)

@@ -150,7 +150,7 @@ RECORDS = KernelSpec("bvh_records", BVH_HEADERS_NO_SCENE, "bvh_records_kernel",
 BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, WAVE_START, RESTRUCTURE_WAVE, KEEP, WIDE_FLAGS,
                WRITE, RECORDS)
 
-BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "r"), Buf("bvh_links", "uint4", "r"), Buf("voxel_tris", "uint", "r"))
+BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "t"), Buf("bvh_links", "uint4", "t"), Buf("voxel_tris", "uint", "t"))
 FLOAT_NODE_BUFFERS = ("bvh_nodes", "bvh_links")
 # bvh reads its triangle records in leaf order (build step 7; trace.h LIST_ORDER_RECORDS); bvh-ls
 # keeps the scene's, in triangle order, because its Line Space lists hold triangle ids.

@@ -17,7 +17,7 @@ from .base import BuildParams, BuildResult, GridGeometry
 from . import svo
 
 TRACE_ESVO = trace_spec("trace_esvo", ("octree.h", "esvo.h"), "trace_esvo_kernel",
-                        (Buf("esvo_nodes", "uint", "r"),) + svo.LEAF_LISTS, GRID_UNIFORMS)
+                        (Buf("esvo_nodes", "uint", "t"),) + svo.LEAF_LISTS, GRID_UNIFORMS)
 
 
 def prepare(device: Device) -> None:

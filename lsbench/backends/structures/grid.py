@@ -24,7 +24,7 @@ VOXELIZE_FILL = KernelSpec(
     SCENE_BUFFERS + (Buf("voxel_offsets", "uint", "r"), Buf("voxel_cursor", "uint", "rw"),
                      Buf("voxel_tris", "uint", "w")),
     GRID_UNIFORMS)
-VOXEL_LISTS = (Buf("voxel_offsets", "uint", "r"), Buf("voxel_tris", "uint", "r"))
+VOXEL_LISTS = (Buf("voxel_offsets", "uint", "t"), Buf("voxel_tris", "uint", "t"))
 TRACE_GRID = trace_spec("trace_grid", ("grid.h",), "trace_grid_kernel", VOXEL_LISTS, GRID_UNIFORMS)
 
 

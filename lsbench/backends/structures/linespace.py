@@ -86,8 +86,8 @@ LS_HEADERS = ("geometry.h", "scene.h", "linespace.h")
 LS_HEADERS_NO_SCENE = ("geometry.h", "linespace.h")
 # What a trace kernel binds to read the Line Spaces of its cells (trace.h: cell_line_space,
 # shaft_list): the cell -> Line Space index and the shafts' candidate lists.
-LS_TRACE_BUFFERS = (Buf("ls_ids", "uint", "r"), Buf("ls_shaft_offsets", "uint", "r"),
-                    Buf("ls_shaft_tris", "uint", "r"))
+LS_TRACE_BUFFERS = (Buf("ls_ids", "uint", "t"), Buf("ls_shaft_offsets", "uint", "t"),
+                    Buf("ls_shaft_tris", "uint", "t"))
 LS_UNIFORMS = GRID_UNIFORMS + (Uniform("ls_n", "uint"), Uniform("ls_shafts", "uint"),
                                Uniform("ls_eps", "float"))
 # The build's batch of cells (linespace.h: ls_shaft_kernel, ls_masks_kernel).
@@ -353,13 +353,17 @@ class SplitArray:
     def chunk_entries(self, i: int) -> int:
         return min(self.entries, (i + 1) << self.shift) - (i << self.shift)
 
-    def defines(self) -> tuple[tuple[str, str], ...]:
+    def defines(self, access: str = "rw") -> tuple[tuple[str, str], ...]:
+        """The macros of a kernel that binds the array's buffers with `access` ("t": read as texels)."""
         if self.chunks <= 1:
             return ()
         mask = f"((i) & {(1 << self.shift) - 1}u)"
-        read = f"V({self.names[-1]})[{mask}]"
+
+        def load(name):
+            return f"LD_U({name}, {mask})" if access == "t" else f"V({name})[{mask}]"
+        read = load(self.names[-1])
         for k in range(self.chunks - 2, -1, -1):
-            read = f"(((i) >> {self.shift}u) == {k}u ? V({self.names[k]})[{mask}] : {read})"
+            read = f"(((i) >> {self.shift}u) == {k}u ? {load(self.names[k])} : {read})"
         store = " else ".join(
             (f"if (ls_chunk_ == {k}u) " if k < self.chunks - 1 else "") + f"V({name})[ls_entry_] = (v);"
             for k, name in enumerate(self.names))
@@ -378,7 +382,7 @@ class SplitArray:
             return spec
         access = next(b.access for b in spec.buffers if b.name == self.base)
         extra = tuple(Buf(name, "uint", access) for name in self.names[1:])
-        return dataclasses.replace(spec, buffers=spec.buffers + extra, defines=spec.defines + self.defines())
+        return dataclasses.replace(spec, buffers=spec.buffers + extra, defines=spec.defines + self.defines(access))
 
     def alloc(self, device: Device, zero: bool) -> dict[str, DeviceBuffer]:
         made: dict[str, DeviceBuffer] = {}

@@ -43,11 +43,11 @@ LEAF_CELLS = KernelSpec(
 # Line Space buffers bound.
 TRACE_SVO_LS = trace_spec(
     "trace_svo_ls", ("octree.h", "octree_ls.h", "svo.h"), "trace_svo_kernel",
-    (Buf("svo_nodes", "uint", "r"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
+    (Buf("svo_nodes", "uint", "t"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
     line_space=True)
 TRACE_ESVO_LS = trace_spec(
     "trace_esvo_ls", ("octree.h", "octree_ls.h", "esvo.h"), "trace_esvo_kernel",
-    (Buf("esvo_nodes", "uint", "r"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
+    (Buf("esvo_nodes", "uint", "t"),) + svo.LEAF_LISTS + linespace.LS_TRACE_BUFFERS, linespace.LS_UNIFORMS,
     line_space=True)
 
 

@@ -67,9 +67,9 @@ CREATE_SVO = create_spec("svo")
 CREATE_ESVO = create_spec("esvo")  # 32-bit descriptors of `esvo` (esvo.py, esvo.h)
 
 # What every octree traversal reads: its nodes, then the leaves and their candidate lists.
-LEAF_LISTS = (Buf("leaves", "uint", "r"), Buf("voxel_tris", "uint", "r"))
+LEAF_LISTS = (Buf("leaves", "uint2", "t"), Buf("voxel_tris", "uint", "t"))
 TRACE_SVO = trace_spec("trace_svo", ("octree.h", "svo.h"), "trace_svo_kernel",
-                       (Buf("svo_nodes", "uint", "r"),) + LEAF_LISTS, GRID_UNIFORMS)
+                       (Buf("svo_nodes", "uint", "t"),) + LEAF_LISTS, GRID_UNIFORMS)
 
 # Per layout: nodes buffer name, bytes per internal node, create kernel.
 LAYOUTS = {"svo": ("svo_nodes", 32, CREATE_SVO), "esvo": ("esvo_nodes", 4, CREATE_ESVO)}

@@ -605,10 +605,21 @@ INLINE float comp4(float4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (
 // A node's slots in either layout (top of this file): the refs, the counts, and the 6 planes of
 // the 4 boxes side by side (lo.x of slots 0..3, hi.x, ...), as the slab tests take them.
 STRUCT(BvhPlanes) { float4 lx; float4 hx; float4 ly; float4 hy; float4 lz; float4 hz; };
+// The trace kernels bind the node buffers as "t" (bvh.py: BVH_TRACE_BUFFERS) and read texels;
+// bvh-ls's build kernels bind them as storage buffers.
+#if defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
+#define BVH_QNODE(i) LD_U4(bvh_qnodes, i)
+#define BVH_NODE(i) LD_F4(bvh_nodes, i)
+#define BVH_LINK(i) LD_U4(bvh_links, i)
+#else
+#define BVH_QNODE(i) V(bvh_qnodes)[i]
+#define BVH_NODE(i) V(bvh_nodes)[i]
+#define BVH_LINK(i) V(bvh_links)[i]
+#endif
 #ifdef BVH_QUANTIZED
-INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return V(bvh_qnodes)[4u * node + 3u]; }
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return BVH_QNODE(4u * node + 3u); }
 INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) {
-    uint c = V(bvh_qnodes)[4u * node + 2u].z;
+    uint c = BVH_QNODE(4u * node + 2u).z;
     return make_uint4(c & 0xffu, (c >> 8) & 0xffu, (c >> 16) & 0xffu, c >> 24);
 }
 INLINE float4 bvh_q_bytes(uint w) {  // the 4 bytes of a word as floats, slot k from byte k
@@ -621,9 +632,9 @@ INLINE float4 bvh_q_plane(float org, uint e, uint w) {
     return p;
 }
 INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
-    uint4 h = V(bvh_qnodes)[4u * node];
-    uint4 xy = V(bvh_qnodes)[4u * node + 1u];
-    uint4 z = V(bvh_qnodes)[4u * node + 2u];
+    uint4 h = BVH_QNODE(4u * node);
+    uint4 xy = BVH_QNODE(4u * node + 1u);
+    uint4 z = BVH_QNODE(4u * node + 2u);
     float ox = as_float(h.x), oy = as_float(h.y), oz = as_float(h.z);
     uint ex = h.w & 0xffu, ey = (h.w >> 8) & 0xffu, ez = (h.w >> 16) & 0xffu;
     BvhPlanes p;
@@ -636,17 +647,17 @@ INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
     return p;
 }
 #else
-INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return V(bvh_links)[2u * node]; }
-INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) { return V(bvh_links)[2u * node + 1u]; }
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return BVH_LINK(2u * node); }
+INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) { return BVH_LINK(2u * node + 1u); }
 #ifndef KERNEL_bvh_ls_flags  // the flags read counts only: that kernel binds bvh_links alone
 INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
     BvhPlanes p;
-    p.lx = V(bvh_nodes)[6u * node];
-    p.hx = V(bvh_nodes)[6u * node + 1u];
-    p.ly = V(bvh_nodes)[6u * node + 2u];
-    p.hy = V(bvh_nodes)[6u * node + 3u];
-    p.lz = V(bvh_nodes)[6u * node + 4u];
-    p.hz = V(bvh_nodes)[6u * node + 5u];
+    p.lx = BVH_NODE(6u * node);
+    p.hx = BVH_NODE(6u * node + 1u);
+    p.ly = BVH_NODE(6u * node + 2u);
+    p.hy = BVH_NODE(6u * node + 3u);
+    p.lz = BVH_NODE(6u * node + 4u);
+    p.hz = BVH_NODE(6u * node + 5u);
     return p;
 }
 #endif

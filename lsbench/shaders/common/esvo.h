@@ -124,7 +124,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                 float cy = as_float(ay << U32(sc)) * ty_coef - ty_bias;
                 float cz = as_float(az << U32(sc)) * tz_coef - tz_bias;
                 t_top = min(t_top, min(min(cx, cy), cz));
-                uint d_anc = V(esvo_nodes)[node];
+                uint d_anc = LD_U(esvo_nodes, node);
                 uint a_slot = ((ax & 1u) | ((ay & 1u) << 1) | ((az & 1u) << 2)) ^ mirror;
                 node = (d_anc >> 8) + rank_in_word(d_anc & 0xffu, a_slot);
             }
@@ -145,7 +145,7 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                     tr = trace_tick(tr);
                     if (TRACE_SUSPENDED(tr)) { tr = esvo_suspend(tr, parent, idx, scale, pos, t_min, t_max); break; }
                 }
-                if (desc == 0u) desc = V(esvo_nodes)[parent];
+                if (desc == 0u) desc = LD_U(esvo_nodes, parent);
                 float tx_corner = pos.x * tx_coef - tx_bias;
                 float ty_corner = pos.y * ty_coef - ty_bias;
                 float tz_corner = pos.z * tz_coef - tz_bias;

@@ -37,12 +37,22 @@
 //   LS_CANDIDATE(i), LS_CANDIDATE_STORE(i, v) word i of the candidates (LS_CANDIDATE_OR: atomic OR)
 // The build's per-shaft set words (LS_SHAFT_SET: index in the cell | LS_SET_HEAD on a set's first
 // shaft) and set lengths, scanned into the set offsets (LS_SET_LEN), are split the same way.
+// Trace kernels (LEAF_LINE_SPACE) bind both arrays as "t" (linespace.py: LS_TRACE_BUFFERS) and read
+// them as texels (LD_U); the build's kernels bind them as storage buffers.
 #ifndef LS_OFFSET
+#ifdef LEAF_LINE_SPACE
+#define LS_OFFSET(i) LD_U(ls_shaft_offsets, i)
+#else
 #define LS_OFFSET(i) V(ls_shaft_offsets)[i]
+#endif
 #define LS_OFFSET_STORE(i, v) V(ls_shaft_offsets)[i] = (v)
 #endif
 #ifndef LS_CANDIDATE
+#ifdef LEAF_LINE_SPACE
+#define LS_CANDIDATE(i) LD_U(ls_shaft_tris, i)
+#else
 #define LS_CANDIDATE(i) V(ls_shaft_tris)[i]
+#endif
 #define LS_CANDIDATE_STORE(i, v) V(ls_shaft_tris)[i] = (v)
 #define LS_CANDIDATE_OR(i, v) ATOMIC_OR(V(ls_shaft_tris)[i], v)
 #endif

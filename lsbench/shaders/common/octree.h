@@ -172,8 +172,8 @@ INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf
 #endif
 
 INLINE Trace oct_test_leaf(CTX_PARAM Trace tr, GridRay g, uint leaf, int3 cell, float2 t_leaf) {
-    uint begin = V(leaves)[2u * leaf];
-    Candidates c = plain_list(begin, begin + V(leaves)[2u * leaf + 1u]);
+    uint2 list = LD_U2(leaves, leaf);  // (first, count): the trace binds `leaves` as uint2 (svo.py: LEAF_LISTS)
+    Candidates c = plain_list(list.x, list.x + list.y);
 #ifdef LEAF_LINE_SPACE
     c = ols_leaf_shaft(CTX_ARG c, g, leaf, cell, t_leaf);
 #endif

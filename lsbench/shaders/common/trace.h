@@ -338,8 +338,8 @@ INLINE Candidates plain_list(uint begin, uint end) {
 // LS_NONE otherwise.
 #define LS_NONE 0xffffffffu
 INLINE uint cell_line_space(CTX_PARAM uint cell) {
-    uint ls = V(ls_ids)[cell];
-    return V(ls_ids)[cell + 1u] > ls ? ls : LS_NONE;
+    uint ls = LD_U(ls_ids, cell);
+    return LD_U(ls_ids, cell + 1u) > ls ? ls : LS_NONE;
 }
 
 // The candidates of shaft `shaft` (ls_shaft_id, linespace.h) of Line Space `ls`: its block's
@@ -370,9 +370,9 @@ INLINE Candidates shaft_list(CTX_PARAM uint ls, uint shaft, Candidates cell) {
 STRUCT(TriRecord) { float3 a; float3 b; float3 c; float3 n; };
 
 INLINE TriRecord load_candidate(CTX_PARAM uint tri) {
-    float4 a = V(tri_verts)[3u * tri];
-    float4 b = V(tri_verts)[3u * tri + 1u];
-    float4 c = V(tri_verts)[3u * tri + 2u];
+    float4 a = LD_F4(tri_verts, 3u * tri);
+    float4 b = LD_F4(tri_verts, 3u * tri + 1u);
+    float4 c = LD_F4(tri_verts, 3u * tri + 2u);
     TriRecord t;
     t.a = a.xyz;
     t.b = b.xyz;
@@ -407,9 +407,9 @@ INLINE Trace test_candidates(CTX_PARAM Trace tr, Candidates c) {
         tr.budget -= 1u;
 #endif
 #ifdef LEAF_LINE_SPACE
-        uint tri = V(voxel_tris)[c.from_shaft != 0 ? c.base + LS_LOCAL_ID(i) : i];
+        uint tri = LD_U(voxel_tris, c.from_shaft != 0 ? c.base + LS_LOCAL_ID(i) : i);
 #else
-        uint tri = V(voxel_tris)[i];
+        uint tri = LD_U(voxel_tris, i);
 #endif
 #ifdef LIST_ORDER_RECORDS
         TriRecord T = load_candidate(CTX_ARG i);

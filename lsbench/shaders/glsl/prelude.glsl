@@ -38,6 +38,13 @@
 #define INF_F uintBitsToFloat(0x7f800000u)
 // Buffer access: SSBOs are globals in GLSL, so the context parameter is empty.
 #define V(name) name
+// Reads of a buffer bound as "t" (kernels.py: Buf): a buffer texture of the same name, one texel
+// per element (glsl.py: TEXEL_FORMATS); llvmpipe fetches a texel as one gather, where an SSBO
+// element is loaded lane by lane behind a bounds check.
+#define LD_U(name, i) texelFetch(name, int(i)).x
+#define LD_U2(name, i) texelFetch(name, int(i)).xy
+#define LD_U4(name, i) texelFetch(name, int(i))
+#define LD_F4(name, i) texelFetch(name, int(i))
 #define CTX_PARAM
 #define CTX_ARG
 #define ATOMIC_ADD(lvalue, v) atomicAdd(lvalue, v)

@@ -38,6 +38,11 @@
 // Buffer access: every kernel gets a generated `Ctx` struct holding its __global pointers and
 // scalar arguments; common code reaches them through V(name) and passes the context along.
 #define V(name) (C->name)
+// Reads of a buffer bound read-only as "t" (kernels.py: Buf): plain loads here; GLSL fetches texels.
+#define LD_U(name, i) (V(name)[i])
+#define LD_U2(name, i) (V(name)[i])
+#define LD_U4(name, i) (V(name)[i])
+#define LD_F4(name, i) (V(name)[i])
 #define CTX_PARAM const Ctx* C,
 #define CTX_ARG C,
 #define ATOMIC_ADD(lvalue, v) atomic_add(&(lvalue), v)
