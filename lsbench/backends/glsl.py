@@ -45,7 +45,8 @@ def _prelude() -> str:
 # Buffers bound as "t" (kernels.Buf): the sampler type a kernel declares and the texel format of the
 # buffer texture over the buffer's store, one texel per element (GL 4.5 core: glTexBuffer).
 TEXEL_FORMATS = {"uint": ("usamplerBuffer", 0x8236), "uint2": ("usamplerBuffer", 0x823C),  # R32UI, RG32UI
-                 "uint4": ("usamplerBuffer", 0x8D70), "float4": ("samplerBuffer", 0x8814)}  # RGBA32UI, RGBA32F
+                 "uint4": ("usamplerBuffer", 0x8D70), "float4": ("samplerBuffer", 0x8814),  # RGBA32UI, RGBA32F
+                 "float": ("samplerBuffer", 0x822E)}  # R32F
 GL_TEXTURE_BUFFER = 0x8C2A
 GL_TEXTURE0 = 0x84C0
 GL_MAX_TEXTURE_BUFFER_SIZE = 0x8C2B

@@ -191,8 +191,10 @@ LS_REACH = dataclasses.replace(
     LS_EDGES, buffers=tuple(b for b in LS_EDGES.buffers if b.name != "ls_edges")).with_defines(LS_REACH_ONLY=1)
 _CELL_BUFFERS = (Buf("ls_cell_boxes", "float4", "r"), Buf("ls_cell_ranges", "uint", "r"),
                  Buf("ls_cell_tris", "uint", "r"), Buf("ls_ref_bases", "uint", "r"))
-_ITEM_BUFFERS = (Buf("ls_planes", "float4", "r"), Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"),
-                 Buf("ls_masks", "uint", "r"), Buf("ls_local_tris", "float4", "r"))
+# The count's and fill's hot reads (the planes, the masks, the cell-local triangles, the edges of
+# _with_test) are texels on GLSL ("t", kernels.Buf).
+_ITEM_BUFFERS = (Buf("ls_planes", "float4", "t"), Buf("ls_item_bases", "uint", "r"), Buf("ls_cell_groups", "uint", "r"),
+                 Buf("ls_masks", "uint", "t"), Buf("ls_local_tris", "float4", "t"))
 # The count and the fill read no cell boxes (the masks pass made everything cell-local) and no
 # triangle ids (the fill writes cell-local positions, i - the cell's range begin).
 _PAIR_CELL_BUFFERS = tuple(b for b in _CELL_BUFFERS if b.name not in ("ls_cell_boxes", "ls_cell_tris"))
@@ -310,7 +312,7 @@ def _with_test(device: Device, spec: KernelSpec) -> KernelSpec:
     if test == "clip":
         return spec.with_defines(LS_CLIP_SH=1)
     if test == "edges" and spec.name in (LS_COUNT.name, LS_FILL.name):
-        return dataclasses.replace(spec, buffers=spec.buffers + (Buf("ls_edges", "float4", "r"),)).with_defines(
+        return dataclasses.replace(spec, buffers=spec.buffers + (Buf("ls_edges", "float4", "t"),)).with_defines(
             LS_EXACT_EDGES=1)
     return spec
 

@@ -396,7 +396,7 @@ INLINE int ls_clip_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3 c, flo
     poly[2] = c;
     int n = 3;
     for (int q = 0; q < LS_MAX_PLANES; ++q) {
-        float4 pl = V(ls_planes)[shaft * U32(LS_PLANE_SLOTS) + U32(q)];
+        float4 pl = LD_F4(ls_planes, shaft * U32(LS_PLANE_SLOTS) + U32(q));
         int m = 0;
         for (int i = 0; i < n; ++i) {
             float3 cur = poly[i];
@@ -508,18 +508,18 @@ INLINE int ls_volume_edge_meets(CTX_PARAM uint shaft, float3 a, float3 b, float3
     float side = da > 0.0f ? 1.0f : -1.0f;
     float nearest = INF_F;  // the hull's least distance to the plane (x |nrm|), on ca's side
     for (uint k = 0u; k < 8u; ++k) {
-        float3 q = V(ls_edges)[corners + k].xyz;
+        float3 q = LD_F4(ls_edges, corners + k).xyz;
         float dq = dot(nrm, q - a);
         if (side * dq <= 0.0f) return ls_in_triangle(nrm, a, b, c, ca + (q - ca) * (da / (da - dq)));
         nearest = min(nearest, side * dq);
     }
     // The hull lies beyond the plane; the pushed volume reaches no further than R past the hull.
-    float reach = V(ls_edges)[base].y;
+    float reach = LD_F4(ls_edges, base).y;
     if (nearest * nearest > reach * reach * nn) return 0;
-    uint count = U32(V(ls_edges)[base].x);
+    uint count = U32(LD_F4(ls_edges, base).x);
     for (uint e = 0u; e < count; ++e) {
-        float3 p = V(ls_edges)[base + 1u + 2u * e].xyz;
-        float3 q = V(ls_edges)[base + 2u + 2u * e].xyz;
+        float3 p = LD_F4(ls_edges, base + 1u + 2u * e).xyz;
+        float3 q = LD_F4(ls_edges, base + 2u + 2u * e).xyz;
         float dp = dot(nrm, p - a);
         float dq = dot(nrm, q - a);
         if ((dp > 0.0f && dq > 0.0f) || (dp < 0.0f && dq < 0.0f)) continue;
@@ -591,13 +591,13 @@ INLINE int ls_masks_certain(uint ma, uint mb) {
 // batch's references, 9 x 4 bytes each (plus a block of padding) in a buffer the driver allows
 // (linespace.py: plan_build, 48 bytes per reference), so 9 ls_tri_stride < 2^31.
 #ifdef LS_CULL_RUNS
-#define LS_TRI_AT(c, r) V(ls_local_tris)[I32((c) * V(ls_tri_stride) + (r))]
+#define LS_TRI_AT(c, r) LD_F(ls_local_tris, I32((c) * V(ls_tri_stride) + (r)))
 #define LS_TRI_ARGS(r) LS_TRI_AT(0u, r), LS_TRI_AT(1u, r), LS_TRI_AT(2u, r), LS_TRI_AT(3u, r), LS_TRI_AT(4u, r), \
     LS_TRI_AT(5u, r), LS_TRI_AT(6u, r), LS_TRI_AT(7u, r), LS_TRI_AT(8u, r)
 #else
-#define LS_TRI_ARGS(r) V(ls_local_tris)[3u * (r)].x, V(ls_local_tris)[3u * (r)].y, V(ls_local_tris)[3u * (r)].z, \
-    V(ls_local_tris)[3u * (r) + 1u].x, V(ls_local_tris)[3u * (r) + 1u].y, V(ls_local_tris)[3u * (r) + 1u].z, \
-    V(ls_local_tris)[3u * (r) + 2u].x, V(ls_local_tris)[3u * (r) + 2u].y, V(ls_local_tris)[3u * (r) + 2u].z
+#define LS_TRI_ARGS(r) LD_F4(ls_local_tris, 3u * (r)).x, LD_F4(ls_local_tris, 3u * (r)).y, LD_F4(ls_local_tris, 3u * (r)).z, \
+    LD_F4(ls_local_tris, 3u * (r) + 1u).x, LD_F4(ls_local_tris, 3u * (r) + 1u).y, LD_F4(ls_local_tris, 3u * (r) + 1u).z, \
+    LD_F4(ls_local_tris, 3u * (r) + 2u).x, LD_F4(ls_local_tris, 3u * (r) + 2u).y, LD_F4(ls_local_tris, 3u * (r) + 2u).z
 #endif
 #define LS_TRI_PARAMS float ax, float ay, float az, float bx, float by, float bz, float cx, float cy, float cz
 #define LS_PLANE_PARAMS float4 p0, float4 p1, float4 p2, float4 p3, float4 p4, float4 p5, float4 p6, float4 p7
@@ -717,8 +717,8 @@ INLINE uint2 ls_masks_run(CTX_PARAM uint ra, uint rb, uint span) {
     uint met = 0u;
     uint live = 0u;
     for (uint k = 0u; k < span; ++k) {
-        uint ma = V(ls_masks)[ra + k];
-        uint mb = V(ls_masks)[rb + k];
+        uint ma = LD_U(ls_masks, ra + k);
+        uint mb = LD_U(ls_masks, rb + k);
         if ((ma & mb & LS_CULL_BITS) == 0u) {
             if (ls_masks_certain(ma, mb) != 0) met |= 1u << k;
             else live |= 1u << k;
@@ -776,8 +776,8 @@ INLINE uint ls_run_meets(CTX_PARAM uint ra, uint rb, uint tri_ref, uint k0, uint
     for (uint k8 = 0u; k8 < span; k8 += LS_RUN_LANES) {
         for (uint l = 0u; l < LS_RUN_LANES; ++l) {
             uint k = k8 + l;
-            uint ma = V(ls_masks)[ra + k0 + k];
-            uint mb = V(ls_masks)[rb + k0 + k];
+            uint ma = LD_U(ls_masks, ra + k0 + k);
+            uint mb = LD_U(ls_masks, rb + k0 + k);
             uint uncut = (ma & mb & LS_CULL_BITS) == 0u ? 1u : 0u;
             live |= uncut << k;
             met |= (uncut & U32(ls_masks_certain(ma, mb))) << k;
@@ -1074,21 +1074,21 @@ INLINE void ls_shaft_kernel(CTX_PARAM uint gid) {
     uint n = V(ls_n);
     uint patches = 6u * n * n;
     uint pb = shaft * U32(LS_PLANE_SLOTS);
-    float4 axis_a = V(ls_planes)[pb + U32(LS_MAX_PLANES)];  // the patches' centres and mask indices
-    float4 axis_b = V(ls_planes)[pb + U32(LS_MAX_PLANES) + 1u];
+    float4 axis_a = LD_F4(ls_planes, pb + U32(LS_MAX_PLANES));  // the patches' centres and mask indices
+    float4 axis_b = LD_F4(ls_planes, pb + U32(LS_MAX_PLANES) + 1u);
     float3 ca = axis_a.xyz;
     float3 cb = axis_b.xyz;
     uint mask_a = U32(axis_a.w);
     uint mask_b = U32(axis_b.w);
     LsShaft sh = ls_shaft_of_masks(n, mask_a, mask_b);  // the SAT's patch corners (unused otherwise)
-    float4 p0 = V(ls_planes)[pb];
-    float4 p1 = V(ls_planes)[pb + 1u];
-    float4 p2 = V(ls_planes)[pb + 2u];
-    float4 p3 = V(ls_planes)[pb + 3u];
-    float4 p4 = V(ls_planes)[pb + 4u];
-    float4 p5 = V(ls_planes)[pb + 5u];
-    float4 p6 = V(ls_planes)[pb + 6u];
-    float4 p7 = V(ls_planes)[pb + 7u];
+    float4 p0 = LD_F4(ls_planes, pb);
+    float4 p1 = LD_F4(ls_planes, pb + 1u);
+    float4 p2 = LD_F4(ls_planes, pb + 2u);
+    float4 p3 = LD_F4(ls_planes, pb + 3u);
+    float4 p4 = LD_F4(ls_planes, pb + 4u);
+    float4 p5 = LD_F4(ls_planes, pb + 5u);
+    float4 p6 = LD_F4(ls_planes, pb + 6u);
+    float4 p7 = LD_F4(ls_planes, pb + 7u);
 #ifdef LS_CULL_RUNS
     // The hull's facets: the slots past them hold (0, 0, 0, -1) (ls_planes_kernel), 5 at least
     uint facets = (p5.x == 0.0f && p5.y == 0.0f && p5.z == 0.0f) ? 5u

@@ -42,6 +42,7 @@
 // per element (glsl.py: TEXEL_FORMATS); llvmpipe fetches a texel as one gather, where an SSBO
 // element is loaded lane by lane behind a bounds check.
 #define LD_U(name, i) texelFetch(name, int(i)).x
+#define LD_F(name, i) texelFetch(name, int(i)).x
 #define LD_U2(name, i) texelFetch(name, int(i)).xy
 #define LD_U4(name, i) texelFetch(name, int(i))
 #define LD_F4(name, i) texelFetch(name, int(i))

@@ -40,6 +40,7 @@
 #define V(name) (C->name)
 // Reads of a buffer bound read-only as "t" (kernels.py: Buf): plain loads here; GLSL fetches texels.
 #define LD_U(name, i) (V(name)[i])
+#define LD_F(name, i) (V(name)[i])
 #define LD_U2(name, i) (V(name)[i])
 #define LD_U4(name, i) (V(name)[i])
 #define LD_F4(name, i) (V(name)[i])
