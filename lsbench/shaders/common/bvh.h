@@ -882,6 +882,15 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // Sponza 512² primary: 0.949 and 0.977 of the device time, medians of 20 alternated pairs of
 // lsbench.profile.ab; incoherent rays and llvmpipe unchanged, 1.005 and 1.002). Stack: at most 3
 // entries per level of the path plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
+// BVH_NEAREST_NEXT, after a visit that pushed from `base` on: the nearest hit slot, when a node,
+// popped and visited next (`continue`: the walk's loop that holds it); else node = BVH_NONE.
+#define BVH_NEAREST_NEXT                                                               \
+    node = BVH_NONE;                                                                   \
+    if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {                               \
+        sp -= 1;                                                                       \
+        node = stack[sp];                                                              \
+        continue;                                                                      \
+    }
 #define BVH_WALK(VISIT, BOUND, LEAF, DONE)                                             \
     uint stack[BVH_STACK];                                                             \
     float stack_t[BVH_STACK];                                                          \
@@ -891,12 +900,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     while (done == 0) {                                                                \
         int base = sp;                                                                 \
         VISIT                                                                          \
-        node = BVH_NONE;                                                               \
-        if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {                           \
-            sp -= 1;                                                                   \
-            node = stack[sp];                                                          \
-            continue;                                                                  \
-        }                                                                              \
+        BVH_NEAREST_NEXT                                                               \
         while (sp > 0) {                                                               \
             sp -= 1;                                                                   \
             uint e = stack[sp];                                                        \
@@ -926,12 +930,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             if (node != BVH_NONE) {                                                    \
                 int base = sp;                                                         \
                 VISIT                                                                  \
-                node = BVH_NONE;                                                       \
-                if (sp > base && (stack[sp - 1] & BVH_LEAF) == 0u) {                   \
-                    sp -= 1;                                                           \
-                    node = stack[sp];                                                  \
-                    continue;                                                          \
-                }                                                                      \
+                BVH_NEAREST_NEXT                                                       \
             }                                                                          \
             e = BVH_NONE;                                                              \
             while (sp > 0) {                                                           \

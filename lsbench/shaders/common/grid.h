@@ -141,7 +141,7 @@ INLINE Candidates gls_voxel_shaft(CTX_PARAM Candidates list, uint vox, GridRay g
 
 INLINE Candidates grid_voxel(CTX_PARAM GridRay g, GridStep s) {
     uint vox = voxel_index(CTX_ARG s.cell);
-    Candidates c = plain_list(LD_U(voxel_offsets, vox), LD_U(voxel_offsets, vox + 1u));
+    Candidates c = plain_list(V(voxel_offsets)[vox], V(voxel_offsets)[vox + 1u]);
 #ifdef LEAF_LINE_SPACE
     if (c.begin < c.end) c = gls_voxel_shaft(CTX_ARG c, vox, g, s);  // an empty voxel has none
 #endif
@@ -228,7 +228,7 @@ INLINE Hit trace_grid(CTX_PARAM Ray ray, uint id) {
                 if (TRACE_SUSPENDED(tr)) break;
                 s = grid_exit(s);
                 uint vox = voxel_index(CTX_ARG s.cell);
-                if (LD_U(voxel_offsets, vox + 1u) > LD_U(voxel_offsets, vox)) {
+                if (V(voxel_offsets)[vox + 1u] > V(voxel_offsets)[vox]) {
                     tr = trace_revisit(tr, 1u);
                     break;
                 }
