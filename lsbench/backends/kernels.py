@@ -30,7 +30,7 @@ class Buf:
     # "r", "w" or "rw"; "t": read-only, and where the backend binds such buffers as textures (GLSL:
     # a buffer texture) fetched as texels: the shared code reads it with LD_U / LD_U2 / LD_U4 / LD_F / LD_F4
     # (preludes) only, never V(name)[i]. llvmpipe loads an SSBO element lane by lane, each behind
-    # a bounds check and a branch, and a texel as one gather: random uvec4 loads took 2.2-2.6x as
+    # a bounds check and a branch, and a texel as one gather: random uvec4 loads took 2.1-2.6x as
     # long from an SSBO (docs/profiles.md, section 17).
     access: str = "rw"
 
