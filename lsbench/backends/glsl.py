@@ -83,7 +83,7 @@ class _BufferTextures:
         self.locations: dict = {}  # (program glo, name) -> uniform location
 
     def bind_buffer(self, unit: int, prog, buf: DeviceBuffer, b: Buf) -> None:
-        sampler, fmt = TEXEL_FORMATS[b.type]
+        fmt = TEXEL_FORMATS[b.type][1]
         texels = buf.nbytes // TYPE_BYTES[b.type]
         if texels > self.max_texels:
             raise DeviceLimitError(f"buffer '{b.name}' holds {texels} texels, over the driver's {self.max_texels} "

@@ -309,7 +309,8 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
                     else:
                         _restructure_in_waves(device, bufs, u, n_tris, *waves)
                 if device.read_uint(cut, 0):
-                    raise device.loop_limit_error("the treelet restructuring's loops (a tree too deep to climb)")
+                    why = "a tree too deep to climb" if waves is None else "a treelet's restructuring in a wave"
+                    raise device.loop_limit_error(f"the treelet restructuring's loops ({why})")
                 stats["sah_cost"] = float(device.read(costs, np.float32, 1)[0]) / root_area if root_area > 0 else 0.0
             keep = temp("bvh_keep", 4 * inner)
             device.dispatch(KEEP, inner, {"bvh_counts": counts, "bvh_parents": parents, "bvh_collapse": collapse,
