@@ -57,6 +57,12 @@ def test_voxel_lists_equal_reference(device, scene_name, resolution):
     assert len(missing) == 0, f"{len(missing)} voxel/triangle pairs outside the borderline band are missing"
     assert len(extra) == 0, f"{len(extra)} pairs outside the borderline band are extra"
     assert built.stats["references"] == len(tris)
+    # The walk's occupancy bits (grid.h: grid_occupancy): bit v & 31 of word v >> 5 set where voxel
+    # v's list is not empty, the last word's bits past the voxels clear.
+    non_empty = np.zeros(32 * -(-g.voxel_count // 32), bool)
+    non_empty[:g.voxel_count] = np.diff(offsets) > 0
+    want = np.packbits(non_empty, bitorder="little").view("<u4")
+    np.testing.assert_array_equal(device.read(built.buffers["voxel_bits"], np.uint32), want)
     built.release()
 
 

@@ -24,27 +24,22 @@ VOXELIZE_FILL = KernelSpec(
     SCENE_BUFFERS + (Buf("voxel_offsets", "uint", "r"), Buf("voxel_cursor", "uint", "rw"),
                      Buf("voxel_tris", "uint", "w")),
     GRID_UNIFORMS)
-# The voxel offsets stay a storage buffer: every step of the walk reads them, and for incoherent
-# rays (8 MiB at 128³, out of cache) llvmpipe's lane-by-lane loads beat its texel fetches (Sponza
-# 256² incoherent: 0.870 of the time, primary 1.035; docs/profiles.md, section 17).
-VOXEL_LISTS = (Buf("voxel_offsets", "uint", "r"), Buf("voxel_tris", "uint", "t"))
+# The voxel offsets stay a storage buffer: the walk reads them only at a non-empty voxel, and for
+# incoherent rays (8 MiB at 128³, out of cache) llvmpipe's lane-by-lane loads beat its texel
+# fetches (Sponza 256² incoherent: 0.870 of the time, primary 1.035; docs/profiles.md, section 17).
+# The occupancy bits (grid.h: grid_occupancy) are what every step reads, as texels.
+VOXEL_LISTS = (Buf("voxel_offsets", "uint", "r"), Buf("voxel_tris", "uint", "t"), Buf("voxel_bits", "uint", "t"))
 TRACE_GRID = trace_spec("trace_grid", ("grid.h",), "trace_grid_kernel", VOXEL_LISTS, GRID_UNIFORMS)
-
-
-def walk(spec: KernelSpec, device: Device) -> KernelSpec:
-    """The DDA walk's trace kernel (grid, grid-ls) for `device`: where it runs work items in SIMD
-    lanes (Device.serial_work_items false: llvmpipe, GPUs), the empty voxels are crossed in an inner
-    loop and a voxel's candidates tested in the outer one (grid.h: GRID_SKIP_EMPTY): llvmpipe runs a
-    loop's body once even where no lane iterates it, so the candidate loop of every step cost a
-    triangle test per empty voxel (docs/profiles.md, section 17: 0.46-0.83 of the device time). On
-    PoCL, whose work items run one at a time, the one loop stays (the two measured 1.03-1.06x)."""
-    return spec if device.serial_work_items else spec.with_defines(GRID_SKIP_EMPTY=1)
+GRID_OCCUPANCY = KernelSpec(
+    "grid_occupancy", ("geometry.h", "grid.h"), "grid_occupancy_kernel",
+    (Buf("voxel_offsets", "uint", "r"), Buf("voxel_bits", "uint", "w")), GRID_UNIFORMS)
 
 
 def prepare(device: Device) -> None:
     """Compile everything the build uses, so build timings never include a compile."""
     for spec in (VOXELIZE_COUNT, VOXELIZE_FILL):
         device.compile_voxelizer(spec)
+    device.compile(GRID_OCCUPANCY)
 
 
 def build_voxel_lists(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry
@@ -69,13 +64,29 @@ def build_voxel_lists(device: Device, scene_buffers: dict, n_tris: int, geometry
     return {"voxel_offsets": offsets, "voxel_tris": tris}, stats
 
 
+def add_occupancy(device: Device, lists: dict[str, DeviceBuffer], geometry: GridGeometry) -> None:
+    """The DDA walk's occupancy bits (grid.h: grid_occupancy) from the lists, as lists["voxel_bits"]."""
+    words = occupancy_words(geometry.voxel_count)
+    bits = device.alloc("voxel_bits", 4 * words, zero=False)
+    device.dispatch(GRID_OCCUPANCY, words, {"voxel_offsets": lists["voxel_offsets"], "voxel_bits": bits},
+                    geometry.uniforms())
+    lists["voxel_bits"] = bits
+
+
+def occupancy_words(voxels: int) -> int:
+    return -(-voxels // 32)
+
+
 def predicted_bytes(voxels: int, references: int) -> dict[str, int]:
-    """The bytes of each buffer build_voxel_lists returns, from the count pass's statistics
-    (lsbench/model/bytes.py): exact, as Device.alloc sizes them (4 bytes at least)."""
-    return {"voxel_offsets": 4 * (voxels + 1), "voxel_tris": max(4 * references, 4)}
+    """The bytes of each buffer of the grid's lists and occupancy bits (build_voxel_lists,
+    add_occupancy), from the count pass's statistics (lsbench/model/bytes.py): exact, as
+    Device.alloc sizes them (4 bytes at least)."""
+    return {"voxel_offsets": 4 * (voxels + 1), "voxel_tris": max(4 * references, 4),
+            "voxel_bits": 4 * occupancy_words(voxels)}
 
 
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
           params: BuildParams) -> BuildResult:
     buffers, stats = build_voxel_lists(device, scene_buffers, n_tris, geometry)
-    return BuildResult(buffers, geometry.uniforms(), walk(TRACE_GRID, device), stats)
+    add_occupancy(device, buffers, geometry)
+    return BuildResult(buffers, geometry.uniforms(), TRACE_GRID, stats)

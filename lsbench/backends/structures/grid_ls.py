@@ -44,6 +44,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     n = linespace.check_n(params.ls_n or 1)
     k = linespace.check_min_candidates(params.ls_min_candidates)
     buffers, stats = grid.build_voxel_lists(device, scene_buffers, n_tris, geometry)
+    grid.add_occupancy(device, buffers, geometry)
     u = dict(linespace.uniforms(geometry, n), ls_min_count=k)
     n_vox = geometry.voxel_count
     # Compaction: voxel -> Line Space index (exclusive scan of the flags; see grid_ls.h).
@@ -59,11 +60,11 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
     # What the structure keeps besides its Line Spaces: the plain lists stay, also where every
     # non-empty voxel has a Line Space, since its shafts' ids are positions in them (linespace.h).
-    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + buffers["voxel_tris"].nbytes
+    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + buffers["voxel_tris"].nbytes + buffers["voxel_bits"].nbytes
     try:
         ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
     except Exception:
-        for b in (boxes, ranges, ls_ids, buffers["voxel_offsets"], buffers["voxel_tris"]):
+        for b in (boxes, ranges, ls_ids, *buffers.values()):
             device.release(b)
         raise
     device.release(boxes)
@@ -78,7 +79,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         "linespace_skipped_voxels": non_empty - n_cells,
         "bytes": {name: b.used for name, b in buffers.items()},
     })
-    return BuildResult(buffers, u, ls.trace_spec(grid.walk(TRACE_GRID_LS, device)), stats)
+    return BuildResult(buffers, u, ls.trace_spec(TRACE_GRID_LS), stats)
 
 
 def predicted_bytes(device: Device, voxels: int, references: int, ls_cells: int,

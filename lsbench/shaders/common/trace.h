@@ -30,7 +30,7 @@
 //   loop top       tr = trace_tick(tr);  if (TRACE_SUSPENDED(tr)) { save; break; }
 //   a cell's loop  tr = trace_revisit(tr, n);  where a step takes n more loop iterations than its
 //                  tick (a cell whose candidates an outer loop tests: grid.h's non-empty voxels
-//                  with GRID_SKIP_EMPTY, n = 1; the octree walks' leaves, n = 2: svo.h, esvo.h)
+//                  in its inner loop, n = 1; the octree walks' leaves, n = 2: svo.h, esvo.h)
 //   after a cell   tr = test_candidates(CTX_ARG tr, c);  if (TRACE_SUSPENDED(tr)) { save; break; }
 //                  (before trace_done: a cell whose list the budget cut must finish first)
 //   save           tr.wa = ...; tr.wb = ...;  the walk's loop state at the top of the iteration
