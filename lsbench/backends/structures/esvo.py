@@ -29,5 +29,5 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
           params: BuildParams) -> BuildResult:
     svo.octree_depth(params.resolution)  # ValueError before any work
     buffers, stats = svo.build_octree(device, scene_buffers, n_tris, geometry, "esvo")
-    spec = TRACE_ESVO.with_defines(OCT_DEPTH=stats["depth"])
+    spec = svo.walk(TRACE_ESVO, stats["depth"], device)
     return BuildResult(buffers, geometry.uniforms(), spec, stats)

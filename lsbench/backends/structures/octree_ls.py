@@ -125,7 +125,7 @@ class LineSpaceOctree:
             "bytes": {name: b.used for name, b in buffers.items()},
         })
         uniforms = linespace.uniforms(geometry, n)
-        return BuildResult(buffers, uniforms, ls.trace_spec(self.trace.with_defines(OCT_DEPTH=stats["depth"])), stats)
+        return BuildResult(buffers, uniforms, ls.trace_spec(svo.walk(self.trace, stats["depth"], device)), stats)
 
 
 svo_ls = LineSpaceOctree("svo", TRACE_SVO_LS)

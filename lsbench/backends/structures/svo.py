@@ -207,9 +207,18 @@ def build_octree(device: Device, scene_buffers: dict, n_tris: int, geometry: Gri
     return {nodes_name: nodes, "leaves": leaves, "voxel_tris": tris}, stats
 
 
+def walk(spec: KernelSpec, depth: int, device: Device) -> KernelSpec:
+    """An octree walk's trace kernel (svo, esvo and their Line Space twins) for a tree of `depth`
+    levels on `device`: where it runs work items in SIMD lanes (Device.serial_work_items false:
+    llvmpipe, GPUs) the walk's stack is read and written through selects (octree.h:
+    OCT_SELECT_STACK), which PoCL indexes as memory."""
+    spec = spec.with_defines(OCT_DEPTH=depth)
+    return spec if device.serial_work_items else spec.with_defines(OCT_SELECT_STACK=1)
+
+
 def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry,
           params: BuildParams) -> BuildResult:
     octree_depth(params.resolution)  # ValueError before any work
     buffers, stats = build_octree(device, scene_buffers, n_tris, geometry, "svo")
-    spec = TRACE_SVO.with_defines(OCT_DEPTH=stats["depth"])
+    spec = walk(TRACE_SVO, stats["depth"], device)
     return BuildResult(buffers, geometry.uniforms(), spec, stats)

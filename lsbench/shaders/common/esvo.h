@@ -116,8 +116,8 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
             scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
             uint node = 0u;
             for (int sc = ESVO_SMAX - 1; sc > scale; --sc) {
-                stack_node[sc - leaf_scale - 1] = node;
-                stack_tmax[sc - leaf_scale - 1] = t_top;
+                OCT_STACK_SET(stack_node, sc - leaf_scale - 1, node)
+                OCT_STACK_SET(stack_tmax, sc - leaf_scale - 1, t_top)
                 // The ancestor at scale sc: the corner rounded down to that scale (as POP does).
                 uint ax = as_uint(pos.x) >> U32(sc), ay = as_uint(pos.y) >> U32(sc), az = as_uint(pos.z) >> U32(sc);
                 float cx = as_float(ax << U32(sc)) * tx_coef - tx_bias;
@@ -174,8 +174,8 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                             // float32 a ray along an edge can still pop into that scale and read an
                             // older subtree's entry. Written always, the stack holds exactly the
                             // ancestors of the current cell, which a resumed slice recomputes.)
-                            stack_node[scale - leaf_scale - 1] = parent;
-                            stack_tmax[scale - leaf_scale - 1] = t_max;
+                            OCT_STACK_SET(stack_node, scale - leaf_scale - 1, parent)
+                            OCT_STACK_SET(stack_tmax, scale - leaf_scale - 1, t_max)
                             parent = child;
                             idx = 0u;
                             scale -= 1;
@@ -208,8 +208,8 @@ INLINE Hit trace_esvo(CTX_PARAM Ray ray, uint id) {
                     scale = I32(as_uint(F32(differing)) >> 23) - 127;  // floor(log2): exact below 2^24
                     if (scale >= ESVO_SMAX) break;  // left the root
                     scale_exp2 = as_float(U32(scale - ESVO_SMAX + 127) << 23);
-                    parent = stack_node[scale - leaf_scale - 1];
-                    t_max = stack_tmax[scale - leaf_scale - 1];
+                    OCT_STACK_GET(parent, stack_node, scale - leaf_scale - 1)
+                    OCT_STACK_GET(t_max, stack_tmax, scale - leaf_scale - 1)
                     // Round the position down to the cell of that scale; its bits give the slot.
                     uint shx = as_uint(pos.x) >> U32(scale);
                     uint shy = as_uint(pos.y) >> U32(scale);

@@ -63,7 +63,9 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
             for (int l = 1; l < level; ++l) {
                 int up = level - l;  // the ancestor at depth l and its slot in stack[l - 1]
                 uint slot = U32((cell.x >> up) & 1) | (U32((cell.y >> up) & 1) << 1) | (U32((cell.z >> up) & 1) << 2);
-                stack[l] = LD_U(svo_nodes, 8u * stack[l - 1] + slot);
+                uint above = 0u;
+                OCT_STACK_GET(above, stack, l - 1)
+                OCT_STACK_SET(stack, l, LD_U(svo_nodes, 8u * above + slot))
             }
         }
         // The steps that test no candidates (descents, empty children, advances) run in the inner
@@ -86,7 +88,9 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                 float nz = dg.z == 0.0f ? INF_F : (F32(cell.z + (sz > 0 ? 1 : 0)) * fs - og.z) * inv.z;
                 float t_exit = min(nx, min(ny, nz));
                 uint slot = U32(cell.x & 1) | (U32(cell.y & 1) << 1) | (U32(cell.z & 1) << 2);
-                uint child = LD_U(svo_nodes, 8u * stack[level - 1] + slot);
+                uint parent = 0u;
+                OCT_STACK_GET(parent, stack, level - 1)
+                uint child = LD_U(svo_nodes, 8u * parent + slot);
                 if (child != 0u) {
                     if (level == OCT_DEPTH) {
                         if (leaf_done == 0) {  // to the outer loop, which tests it
@@ -103,7 +107,7 @@ INLINE Hit trace_svo(CTX_PARAM Ray ray, uint id) {
                         float ey = dg.y == 0.0f ? -INF_F : (F32(cell.y + (sy > 0 ? 0 : 1)) * fs - og.y) * inv.y;
                         float ez = dg.z == 0.0f ? -INF_F : (F32(cell.z + (sz > 0 ? 0 : 1)) * fs - og.z) * inv.z;
                         float t_in = max(t0, max(ex, max(ey, ez)));
-                        stack[level] = child;
+                        OCT_STACK_SET(stack, level, child)
                         level += 1;
                         size >>= 1;
                         float hs = F32(size);
