@@ -60,7 +60,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     cells = linespace.Cells(n_cells, boxes, ranges, buffers["voxel_tris"], stats["references"])
     # What the structure keeps besides its Line Spaces: the plain lists stay, also where every
     # non-empty voxel has a Line Space, since its shafts' ids are positions in them (linespace.h).
-    kept = buffers["voxel_offsets"].nbytes + ls_ids.nbytes + buffers["voxel_tris"].nbytes + buffers["voxel_bits"].nbytes
+    kept = sum(b.nbytes for b in buffers.values()) + ls_ids.nbytes  # lists, occupancy bits, ids
     try:
         ls = linespace.build_linespaces(device, scene_buffers, geometry, cells, n, params.budget_bytes, kept)
     except Exception:

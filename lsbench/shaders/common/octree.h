@@ -30,9 +30,9 @@
 // OCT_STACK_GET(dst, a, k) reads it. Where work items run in SIMD lanes (svo.py `walk`: llvmpipe,
 // GPUs) OCT_SELECT_STACK makes each access a loop over the OCT_DEPTH entries that the compiler
 // unrolls into one compare and select per entry: llvmpipe writes an array indexed per lane lane by
-// lane and reads it with a gather (docs/profiles.md, section 10); the selects took esvo to 0.82-0.91
-// of its device time (section 18). PoCL, whose stack is plain memory in cache, indexes it (the
-// selects measured 1.03-1.06 there).
+// lane and reads it with a gather (docs/profiles.md, section 10); the selects took the octree walks
+// to 0.84-0.97 of their device time (section 18). PoCL, whose stack is plain memory in cache,
+// indexes it (the selects measured 1.03-1.06 there).
 #ifdef OCT_SELECT_STACK
 #define OCT_STACK_SET(a_, k_, v_) for (int i_ = 0; i_ < OCT_DEPTH; ++i_) { if (i_ == (k_)) a_[i_] = (v_); }
 #define OCT_STACK_GET(dst_, a_, k_) for (int i_ = 0; i_ < OCT_DEPTH; ++i_) { if (i_ == (k_)) dst_ = a_[i_]; }
