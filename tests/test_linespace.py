@@ -146,6 +146,8 @@ def test_shaft_candidates_hold_every_triangle_a_shaft_segment_meets(device, monk
     starts, ends = shaft_segments(n, 12 if n < 3 else 8, rng)
     voxels = np.flatnonzero(np.diff(ls_ids))
     assert len(voxels) == built.stats["linespace_voxels"] > 0
+    voxel_offsets = device.read(built.buffers["voxel_offsets"], np.uint32, g.voxel_count + 1)
+    assert built.stats["non_empty_voxels"] == np.count_nonzero(np.diff(voxel_offsets)) == len(voxels)  # K = 0
     hits_total = 0
     culled = 0
     for vox in voxels:

@@ -5,6 +5,8 @@ scene.h and trace.h. Device.voxelize runs the voxelization, through the raster p
 compute kernel, as the device does it best (the same voxel lists either way)."""
 from __future__ import annotations
 
+import numpy as np
+
 from ..device import Device, DeviceBuffer, DeviceLimitError
 from ..kernels import GRID_UNIFORMS, SCENE_BUFFERS, Buf, KernelSpec, Uniform, trace_spec
 from .base import BuildParams, BuildResult, GridGeometry
@@ -75,6 +77,12 @@ def add_occupancy(device: Device, lists: dict[str, DeviceBuffer], geometry: Grid
 
 def occupancy_words(voxels: int) -> int:
     return -(-voxels // 32)
+
+
+def occupied_voxels(device: Device, bits: DeviceBuffer) -> int:
+    """Voxels with at least one candidate (for the stats): the set occupancy bits (the last word's
+    bits past the voxels are clear)."""
+    return int(np.bitwise_count(device.read(bits, np.uint32)).sum())
 
 
 def predicted_bytes(voxels: int, references: int) -> dict[str, int]:

@@ -52,7 +52,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     device.dispatch(GLS_FLAGS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_flags": flags}, u)
     ls_ids, n_cells = device.exclusive_scan(flags, n_vox, "ls_ids")
     device.release(flags)
-    non_empty = _non_empty_voxels(device, buffers["voxel_offsets"], n_vox, u)
+    non_empty = grid.occupied_voxels(device, buffers["voxel_bits"])
     boxes = device.alloc("ls_cell_boxes", 32 * max(n_cells, 1), zero=False)
     ranges = device.alloc("ls_cell_ranges", 8 * max(n_cells, 1), zero=False)
     device.dispatch(GLS_CELLS, n_vox, {"voxel_offsets": buffers["voxel_offsets"], "ls_ids": ls_ids,
@@ -92,14 +92,3 @@ def predicted_bytes(device: Device, voxels: int, references: int, ls_cells: int,
     out.update(linespace.predicted_bytes(device, ls_cells, n, lists))
     return out
 
-
-def _non_empty_voxels(device: Device, voxel_offsets, n_vox: int, u: dict) -> int:
-    """Voxels with at least one candidate (for the stats), counted on the device with the same
-    flags kernel at K = 0."""
-    flags = device.alloc("ls_flags0", 4 * n_vox, zero=False)
-    device.dispatch(GLS_FLAGS, n_vox, {"voxel_offsets": voxel_offsets, "ls_flags": flags},
-                    dict(u, ls_min_count=0))
-    scan, total = device.exclusive_scan(flags, n_vox, "ls_flags0.scan")
-    device.release(flags)
-    device.release(scan)
-    return total
