@@ -24,16 +24,19 @@ SPONZA_CAMERA = Camera(eye=(1100, 180, -40), target=(-900, 420, 40), up=(0, 1, 0
 
 
 def _read_tree(built):
-    """The nodes as the float layout holds them: (n, 6, 4) planes lo.x, hi.x, lo.y, hi.y, lo.z, hi.z
-    of slots 0..3, (n, 2, 4) refs and counts; quantized nodes decoded in float32 as the traversal
+    """The nodes as the float layouts hold them: (n, 6, W) planes lo.x, hi.x, lo.y, hi.y, lo.z, hi.z
+    of slots 0..W-1, (n, 2, W) refs and counts (float8: a node's two records side by side, W = 8;
+    else W = 4); quantized nodes decoded in float32 as the traversal
     decodes them (origin + q * step, shaders/common/bvh.h), with (n, 3) steps; voxel_tris."""
     d = built.device
     n_nodes = built.stats["nodes"]
     tris = d.read(built.buffers["voxel_tris"], np.uint32)
-    if built.stats["node_layout"] == "float":
-        nodes = d.read(built.buffers["bvh_nodes"], np.float32, 24 * n_nodes).reshape(n_nodes, 6, 4)
-        links = d.read(built.buffers["bvh_links"], np.uint32, 8 * n_nodes).reshape(n_nodes, 2, 4)
-        return nodes, links, tris, None
+    if built.stats["node_layout"] != "quantized":
+        r = bvh.NODE_WIDTHS[built.stats["node_layout"]] // 4  # 4-slot records per node
+        nodes = d.read(built.buffers["bvh_nodes"], np.float32, 24 * r * n_nodes).reshape(n_nodes, r, 6, 4)
+        links = d.read(built.buffers["bvh_links"], np.uint32, 8 * r * n_nodes).reshape(n_nodes, r, 2, 4)
+        return (nodes.transpose(0, 2, 1, 3).reshape(n_nodes, 6, 4 * r),
+                links.transpose(0, 2, 1, 3).reshape(n_nodes, 2, 4 * r), tris, None)
     q = d.read(built.buffers["bvh_qnodes"], np.uint32, 16 * n_nodes).reshape(n_nodes, 4, 4)
     origin = q[:, 0, :3].copy().view(np.float32)
     exponents = (q[:, 0, 3:4] >> np.array([0, 8, 16], np.uint32)) & 0xFF
@@ -56,7 +59,7 @@ NONE = 0xFFFFFFFF
 
 
 def check_tree(built, scene, leaf_size):
-    """Walk the device's 4-wide nodes from the root: every node reached once, every triangle in
+    """Walk the device's wide nodes from the root: every node reached once, every triangle in
     exactly one leaf, no leaf over leaf_size, the depth as the build says (the traversal's stack is
     sized from it). Float nodes: every slot's box holds the boxes of its node's slots, and a leaf's
     is its triangles' (exact float min/max: no tolerance). Quantized nodes (check_quantized): every
@@ -64,6 +67,8 @@ def check_tree(built, scene, leaf_size):
     their box. Returns the leaf sizes."""
     nodes, links, tris, steps = _read_tree(built)
     quantized = steps is not None
+    width = nodes.shape[2]
+    assert width == built.stats["width"] == bvh.NODE_WIDTHS[built.stats["node_layout"]]
     n = scene.triangle_count
     assert np.array_equal(np.sort(tris), np.arange(n, dtype=np.uint32)), "voxel_tris is no permutation"
     triangles = scene.triangles.astype(np.float32)
@@ -76,13 +81,13 @@ def check_tree(built, scene, leaf_size):
         node, depth = stack.pop()
         deepest = max(deepest, depth)
         seen_nodes[node] += 1
-        used = [s for s in range(4) if links[node, 0, s] != NONE]
+        used = [s for s in range(width) if links[node, 0, s] != NONE]
         assert used == list(range(len(used))) and (len(used) >= 2 or len(nodes) == 1), (node, used)
         for slot in used:
             ref, count = int(links[node, 0, slot]), int(links[node, 1, slot])
             lo, hi = _slot_box(nodes, node, slot)
             if count == 0:  # a node: this box holds its slots' boxes
-                for s in range(4):
+                for s in range(width):
                     if links[ref, 0, s] != NONE and not quantized:  # quantized: check_quantized below
                         clo, chi = _slot_box(nodes, ref, s)
                         assert np.all(lo <= clo) and np.all(chi <= hi), (node, slot, ref)
@@ -98,8 +103,8 @@ def check_tree(built, scene, leaf_size):
     assert np.all(seen_nodes == 1), "a node is unreachable or reached twice (buffers sized exactly)"
     assert np.all(covered == 1), f"{np.count_nonzero(covered != 1)} triangles not in exactly one leaf"
     assert built.stats["leaves"] == len(leaf_sizes)
-    # bvh.py's stack bound: 4-wide levels = binary depth // 2 + 1
-    assert deepest <= built.stats["depth"] // 2
+    # bvh.py's stack bound: wide levels = binary depth // (levels dropped + 1) + 1
+    assert deepest + 1 <= built.stats["wide_depth"] == built.stats["depth"] // (width // 4 + 1) + 1
     if quantized:
         check_quantized(nodes, links, tris, steps, triangles)
     return np.array(leaf_sizes)
@@ -139,7 +144,7 @@ def check_quantized(nodes, links, tris, steps, triangles):
             assert np.all(qlo > lo - step) and np.all(qhi < hi + step), ("a quantized box is not tight", node, s)
 
 
-@pytest.mark.parametrize("layout", ["float", "quantized"])
+@pytest.mark.parametrize("layout", list(bvh.NODE_LAYOUTS))
 @pytest.mark.parametrize("scene_name,leaf_size,quality", [
     ("cornell", 8, "treelet"), ("cornell", 64, "sah"), ("cornell", 64, "none"), ("single-triangle", 1, "treelet"),
     ("two-planes", 1, "treelet"), ("spheres", 4, "sah"), ("spheres", 4, "treelet"), ("spheres", 1, "treelet"),
@@ -408,17 +413,20 @@ def test_both_push_orders_find_the_same_hits(device, monkeypatch):
 
 @pytest.mark.parametrize("structure", ["bvh", "bvh-ls"])
 @pytest.mark.parametrize("scene_name", ["atrium", "adversarial"])
-def test_both_node_layouts_find_the_same_hits(device, structure, scene_name):
-    """Float and quantized nodes (bvh.py NODE_LAYOUTS; the device picks one, options["bvh_nodes"]
-    forces either) on this device: primary, incoherent and any-hit shadow rays, and on the
-    adversarial scene (strips in the bounding planes, slivers, all 1e4 units from the origin) its
-    adversarial rays. Both answer every ray as Embree's check explains; on the renderer's rays
-    they find the same closest distance (another triangle only at a tie) and the same occluded
-    rays. A quantized box holds its float box and more, so on the adversarial rays that lie in a
-    box's face plane (a triangle's own plane: a graze) the quantized walk may find a grazed
-    triangle nearer than the float walk's hit, never a farther one; bvh-ls builds its Line Spaces
-    over the leaves' boxes as the nodes hold them, so its shafts differ too and a graze may go
-    either way."""
+def test_all_node_layouts_find_the_same_hits(device, structure, scene_name):
+    """Float, float8 and quantized nodes (bvh.py NODE_LAYOUTS; the device picks one,
+    options["bvh_nodes"] forces any) on this device: primary, incoherent and any-hit shadow rays,
+    and on the adversarial scene (strips in the bounding planes, slivers, all 1e4 units from the
+    origin) its adversarial rays. All answer every ray as Embree's check explains, and on the
+    renderer's rays float8 and quantized find float's closest distance (another triangle only at a
+    tie) and its occluded rays. On the adversarial rays float8 (the same boxes as float, two levels
+    of three kept instead of one of two) may end at a hit one float step apart where a ray grazes a
+    box whose rounded entry lies past a triangle's rounded hit, so the walks' order decides; a
+    quantized box holds its float box
+    and more, so on the adversarial rays that lie in a box's face plane (a triangle's own plane: a
+    graze) the quantized walk may find a grazed triangle nearer than the float walk's hit, never a
+    farther one; bvh-ls builds its Line Spaces over the leaves' boxes as the nodes hold them, so its
+    shafts differ too and a graze may go either way."""
     scene = load_scene(scene_name)
     lo, hi = scene.bounds
     light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
@@ -431,21 +439,24 @@ def test_both_node_layouts_find_the_same_hits(device, structure, scene_name):
         resolution=(1, 1, 1), ls_n=2 if ls else 0, ls_min_candidates=8 if ls else 0,
         options={"bvh_nodes": layout})) for layout in bvh.NODE_LAYOUTS}
     try:
-        assert built["quantized"].stats["node_bytes"] == 64 and built["float"].stats["node_bytes"] == 128
+        assert {layout: b.stats["node_bytes"] for layout, b in built.items()} == bvh.NODE_LAYOUTS
         for rays in sets:
-            ours, theirs = (backends.trace(built[layout], rays) for layout in bvh.NODE_LAYOUTS)
+            hits = {layout: backends.trace(b, rays) for layout, b in built.items()}
             ref_p, ref_t = embree_closest(scene, rays)
-            for hits in (ours, theirs):
-                _, cl = judge_hits(scene, rays, hits.prim_ids, hits.distances, ref_p, ref_t)
-                assert cl.unexplained == 0, (rays.name, cl)
-            if rays.name == "adversarial":
-                differ = np.count_nonzero(theirs.distances != ours.distances)
-                assert differ <= 0.01 * rays.count, differ
-                assert ls or np.all(theirs.distances <= ours.distances)
-                continue
-            assert np.array_equal(ours.prim_ids >= 0, theirs.prim_ids >= 0), rays.name
-            if rays.query == "closest":
-                np.testing.assert_array_equal(ours.distances, theirs.distances, err_msg=rays.name)
+            for layout, h in hits.items():
+                _, cl = judge_hits(scene, rays, h.prim_ids, h.distances, ref_p, ref_t)
+                assert cl.unexplained == 0, (layout, rays.name, cl)
+            ours = hits["float"]
+            for layout in ("float8", "quantized"):
+                theirs = hits[layout]
+                if rays.name == "adversarial":
+                    differ = np.count_nonzero(theirs.distances != ours.distances)
+                    assert differ <= 0.01 * rays.count, (layout, differ)
+                    assert ls or layout == "float8" or np.all(theirs.distances <= ours.distances)
+                    continue
+                assert np.array_equal(ours.prim_ids >= 0, theirs.prim_ids >= 0), (layout, rays.name)
+                if rays.query == "closest":
+                    np.testing.assert_array_equal(ours.distances, theirs.distances, err_msg=f"{layout} {rays.name}")
     finally:
         for b in built.values():
             b.release()
@@ -454,9 +465,9 @@ def test_both_node_layouts_find_the_same_hits(device, structure, scene_name):
 def test_node_layout_is_checked(device):
     """options["bvh_nodes"]: auto picks by the device (float where work items run one after the
     other, quantized in SIMD lanes); anything else is one line naming the allowed values."""
-    assert bvh.node_layout(device, {}) == ("float" if device.serial_work_items else "quantized")
+    assert bvh.node_layout(device, {}) == ("float8" if device.serial_work_items else "quantized")
     assert bvh.node_layout(device, {"bvh_nodes": "quantized"}) == "quantized"
-    with pytest.raises(ValueError, match="bvh_nodes must be one of auto, float, quantized, got 'half'"):
+    with pytest.raises(ValueError, match="bvh_nodes must be one of auto, float8, float, quantized, got 'half'"):
         bvh.node_layout(device, {"bvh_nodes": "half"})
 
 

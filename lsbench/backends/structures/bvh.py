@@ -24,13 +24,22 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    for 0.34 s of restructuring (6 rounds; 3 rounds: SAH 107 in 0.15 s). options["bvh_quality"]
    (QUALITIES) stops after a stage.
 6. Compaction: the inner nodes that stay nodes are flagged (not collapsed into a leaf), those at
-   an even depth head the 4-wide nodes (every odd level is dropped: a node takes its children's
-   children), which are scanned and written in one of the layouts of bvh.h into buffers of exactly
-   that size. Sponza: 4-wide nodes take 40 node visits per primary ray where the binary nodes
-   (64 bytes, Aila & Laine 2009) took 74, +28 % rays/s on PoCL. The layout (options["bvh_nodes"],
-   NODE_LAYOUTS; "auto" by the device):
+   a depth that the levels per wide node divide head the wide nodes (4-wide: every odd level is
+   dropped, a node takes its children's children; 8-wide: two levels of three), which are scanned
+   and written in one of the layouts of bvh.h into buffers of exactly that size. Sponza: 4-wide
+   nodes take 40 node visits per primary ray where the binary nodes (64 bytes, Aila & Laine 2009)
+   took 74, +28 % rays/s on PoCL. The layout (options["bvh_nodes"], NODE_LAYOUTS; "auto" by the
+   device):
+   - "float8", 256 bytes per node (two float records side by side, slots 0..3 and 4..7): bvh's
+     layout where work items run one after the other (PoCL). 8-wide nodes take 8.6 node visits per
+     incoherent ray where 4-wide ones took 13.7 (Sponza 512², 4.0 slots used per node of 8 against
+     3.0 of 4): 0.91 of the trace's device time on incoherent rays, 0.97 on primary rays (medians
+     of 11 alternated launches in one process, hits identical), +15 % node bytes (28.8 MiB in all
+     against 25.1). Filling the nodes greedily instead (opening the kept child of largest area
+     until 8 slots, top down in waves) gave 4.3 slots per node and no further gain (0.89 against
+     0.93, not resolved), so the levels stay (docs/profiles.md, section 19);
    - "float", 128 bytes per node (all four children's boxes side by side in bvh_nodes, 96 bytes;
-     refs and leaf counts in bvh_links, 32): where work items run one after the other (PoCL);
+     refs and leaf counts in bvh_links, 32): bvh-ls's layout there (8-wide gained it 0.98-0.99);
    - "quantized", 64 bytes per node (bvh_qnodes: the boxes in 8 bits per plane on power-of-two
      steps of the node's own box, conservative in float32): where work items run in SIMD lanes
      (llvmpipe, GPUs). llvmpipe loads every lane's value on its own (docs/profiles.md, section 10),
@@ -67,7 +76,7 @@ inner node).
 Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
 scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
 per-buffer limit at allocation (llvmpipe 128 MiB: 2.1 M quantized 4-wide nodes of 64 bytes, ~30 M
-triangles for the sort buffers); the traversal's leaf entries address a slot as 4 * node + slot in
+triangles for the sort buffers); the traversal's leaf entries address a slot as 4 * record + slot in
 31 bits; leaves hold at most 255 triangles (LEAF_SIZES: the quantized layout counts them in a byte)."""
 from __future__ import annotations
 
@@ -87,10 +96,11 @@ SORT_UNIFORMS = BVH_UNIFORMS + (Uniform("sort_shift", "uint"), Uniform("sort_chu
                                 Uniform("sort_chunks", "uint"))
 SORT_CHUNK = 256  # keys per work item of the sort (a loop of 256 stays far inside llvmpipe's budget)
 SORT_BITS, SORT_DIGITS, MORTON_BITS = 5, 32, 30  # must match shaders/common/bvh.h
-# The 4-wide node's layouts (shaders/common/bvh.h) and their bytes per node: "float" (bvh_nodes 96
-# + bvh_links 32), "quantized" (bvh_qnodes); options["bvh_nodes"] picks one, "auto" by the device.
-NODE_LAYOUTS = {"float": 128, "quantized": 64}
-WIDTH = 4
+# The wide node's layouts (shaders/common/bvh.h) and their bytes per node: "float" (bvh_nodes 96
+# + bvh_links 32), "float8" (the same, 8-wide: two of those records per node), "quantized"
+# (bvh_qnodes); options["bvh_nodes"] picks one, "auto" by the device; NODE_WIDTHS: slots per node.
+NODE_LAYOUTS = {"float8": 256, "float": 128, "quantized": 64}
+NODE_WIDTHS = {"float8": 8, "float": 4, "quantized": 4}
 LEAF_SIZES = (1, 2, 4, 8, 16, 32, 64, 128, 255)  # inputs/checks.py names them
 # Leaves of at most 2: the SAH collapse and the treelets then give Sponza 31.3 node visits and 6.3
 # triangle tests per primary ray (256², interior camera) where at most 8 gave 34.4 and 7.6 (the
@@ -159,12 +169,13 @@ TRACE_BVH = trace_spec("trace_bvh", ("bvh.h",), "trace_bvh_kernel", BVH_TRACE_BU
 RECORD_BYTES = 48  # a triangle's record: 3 float4 (trace.h, tri_verts)
 
 
-def node_layout(device: Device, options: dict) -> str:
-    """The node layout of options["bvh_nodes"]: "float", "quantized", or "auto" (the default):
-    quantized where the device runs work items in SIMD lanes (Device.serial_work_items false)."""
+def node_layout(device: Device, options: dict, serial_auto: str = "float8") -> str:
+    """The node layout of options["bvh_nodes"]: one of NODE_LAYOUTS, or "auto" (the default):
+    quantized where the device runs work items in SIMD lanes (Device.serial_work_items false),
+    else `serial_auto`."""
     value = options.get("bvh_nodes", "auto")
     if value == "auto":
-        return "float" if device.serial_work_items else "quantized"
+        return serial_auto if device.serial_work_items else "quantized"
     if value not in NODE_LAYOUTS:
         raise ValueError(f"bvh_nodes must be one of auto, {', '.join(NODE_LAYOUTS)}, got {value!r}")
     return value
@@ -172,10 +183,13 @@ def node_layout(device: Device, options: dict) -> str:
 
 def with_node_layout(spec: KernelSpec, layout: str) -> KernelSpec:
     """A kernel written against the float layout's buffers (bvh_nodes, bvh_links), in `layout`:
-    for "quantized", bvh_qnodes bound in their place and BVH_QUANTIZED defined."""
+    for "float8", BVH_NODE_RECORDS 2 defined; for "quantized", bvh_qnodes bound in their place and
+    BVH_QUANTIZED defined."""
     if layout == "float":
         return spec
-    access = next(b.access for b in spec.buffers if b.name in FLOAT_NODE_BUFFERS)
+    if layout == "float8":
+        return spec.with_defines(BVH_NODE_RECORDS=2)
+    access = next((b.access for b in spec.buffers if b.name in FLOAT_NODE_BUFFERS), None)
     buffers, placed = [], False
     for b in spec.buffers:
         if b.name in FLOAT_NODE_BUFFERS:
@@ -215,7 +229,9 @@ def _restructure_in_waves(device: Device, bufs: dict, uniforms: dict, n_tris: in
 def prepare(device: Device) -> None:
     for spec in BUILD_SPECS:
         device.compile(spec)
-    device.compile(with_node_layout(WRITE, "quantized"))
+    for layout in ("float8", "quantized"):
+        device.compile(with_node_layout(WRITE, layout))
+        device.compile(with_node_layout(WIDE_FLAGS, layout))
 
 
 def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict
@@ -256,6 +272,8 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
     """Build steps 1-6 (module docstring) with nodes in `layout` (NODE_LAYOUTS). Returns the
     structure's buffers (bvh_nodes and bvh_links, or bvh_qnodes; voxel_tris) and the build's stats."""
     node_bytes = NODE_LAYOUTS[layout]
+    width = NODE_WIDTHS[layout]
+    records = width // 4  # 4-slot records per node
     sah = check_quality(quality) in ("sah", "treelet")
     if n_tris > MAX_TRIANGLES:
         raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
@@ -320,22 +338,24 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             wide = temp("bvh_wide_flags", 4 * inner)
             depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
             temps.append(depth_buf)
-            device.dispatch(WIDE_FLAGS, inner, {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide,
-                                                "bvh_depth": depth_buf}, u)
+            device.dispatch(with_node_layout(WIDE_FLAGS, layout), inner,
+                            {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide, "bvh_depth": depth_buf}, u)
+            stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
+            stats["wide_depth"] = stats["depth"] // (records + 1) + 1  # wide nodes on the deepest path
             ids, n_nodes = device.exclusive_scan(wide, inner, "bvh_ids")
             temps.append(ids)
-            stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
         else:
             stats["sah_cost"] = stats["sah_cost_plain"] = stats["sah_cost_collapse"] = 0.0
             ids, n_nodes, n_binary, stats["depth"] = temp("bvh_ids", 4, zero=True), 0, 0, 0
+            stats["wide_depth"] = 1
             keep = temp("bvh_keep", 4, zero=True)
-        if WIDTH * n_nodes >= 2**31:
+        if width * n_nodes >= 2**31:
             raise DeviceLimitError(f"bvh: {n_nodes} nodes overflow the traversal's 31-bit leaf entries "
-                                   "(4 * node + slot)")
-        if layout == "float":
-            node_bufs = {"bvh_nodes": device.alloc("bvh_nodes", 96 * max(n_nodes, 1), zero=False)}
+                                   "(4 * record + slot)")
+        if layout != "quantized":
+            node_bufs = {"bvh_nodes": device.alloc("bvh_nodes", 96 * records * max(n_nodes, 1), zero=False)}
             made.append(node_bufs["bvh_nodes"])
-            node_bufs["bvh_links"] = device.alloc("bvh_links", 32 * max(n_nodes, 1), zero=False)
+            node_bufs["bvh_links"] = device.alloc("bvh_links", 32 * records * max(n_nodes, 1), zero=False)
             made.append(node_bufs["bvh_links"])
         else:
             node_bufs = {"bvh_qnodes": device.alloc("bvh_qnodes", node_bytes * max(n_nodes, 1), zero=False)}
@@ -354,7 +374,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         for b in temps:
             device.release(b)
     stats.update({"nodes": max(n_nodes, 1), "binary_nodes": n_binary, "leaves": n_binary + 1,
-                  "references": n_tris, "node_layout": layout, "node_bytes": node_bytes,
+                  "references": n_tris, "node_layout": layout, "node_bytes": node_bytes, "width": width,
                   "temp_bytes": int(temp_bytes)})
     return {**node_bufs, "voxel_tris": tris}, stats
 
@@ -396,9 +416,10 @@ def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBu
 
 def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
     """The trace kernel for the built tree: its node layout (stats["node_layout"]), its stack sized
-    to the tree: 3 entries per 4-wide level of the deepest path plus one node's 4 (bvh.h:
+    to the tree: width - 1 entries per wide node of the deepest path plus one node's width (bvh.h:
     trace_bvh; the treelet restructuring may make a tree deeper than the Karras hierarchy's ~64
     levels). Where the driver runs work items in SIMD lanes, a node's hit slots are sorted in
     registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
-    spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=3 * (stats["depth"] // 2 + 1) + 4)
+    width = stats["width"]
+    spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=(width - 1) * stats["wide_depth"] + width)
     return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

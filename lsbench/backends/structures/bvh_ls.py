@@ -8,7 +8,7 @@ Build, all on the device:
    (bvh_quality "plain-treelet"). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
    leaves of ~2 triangles, which no Line Space can speed up; here the Line Space is what makes a
    large leaf cheap to test (bvh_quality = "treelet" asks for the SAH leaves);
-2. the cells: every child slot of a node (cell = 4 * node + slot) that is a leaf of more than
+2. the cells: every child slot of a node record (cell = 4 * record + slot) that is a leaf of more than
    K = ls_min_candidates triangles is flagged, an exclusive scan gives ls_ids (slot -> Line Space),
    and each such leaf's box (padded so that no side is under 5 % of the longest: bvh.h
    bvh_ls_box) and its range of voxel_tris become a cell;
@@ -53,11 +53,11 @@ class LineSpaceBVH:
         leaf_size = bvh.check_leaf_size(params.leaf_size or DEFAULT_LEAF_SIZE)
         n = linespace.check_n(params.ls_n or 1)
         k = linespace.check_min_candidates(params.ls_min_candidates)
-        layout = bvh.node_layout(device, params.options)
+        layout = bvh.node_layout(device, params.options, serial_auto="float")
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
                                        quality=params.options.get("bvh_quality", "plain-treelet"), layout=layout)
         node_bufs = {name: buffers[name] for name in buffers if name != "voxel_tris"}
-        slots = bvh.WIDTH * stats["nodes"]
+        slots = stats["width"] * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)
         made: list[DeviceBuffer] = []
         try:

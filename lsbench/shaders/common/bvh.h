@@ -1,22 +1,24 @@
 // `bvh` and `bvh-ls`: a BVH built on the device (a linear BVH: Morton codes of the
 // triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
 // construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
-// collapse, treelet restructuring after Karras & Aila 2013), made 4-wide, and its stack traversal
-// (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency of ray
-// traversal on GPUs", 4 of them as Embree's BVH4; nearest child first). bvh-ls gives the
+// collapse, treelet restructuring after Karras & Aila 2013), made 4- or 8-wide, and its stack
+// traversal (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency
+// of ray traversal on GPUs", 4 or 8 of them as Embree's BVH4 and BVH8; nearest child first). bvh-ls gives the
 // large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
 // Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
 // writer, Line Space cells, traversal) also scene.h, the traversal trace.h (and for bvh-ls
 // linespace.h and octree_ls.h). The host side: backends/structures/bvh.py.
 //
-// The finished structure is 4-wide (the binary tree with every odd level dropped, builds 7-8): a
-// node holds the boxes of its up to 4 children (slots) side by side, so one float4 operation
-// tests a plane of all four (the layout of Embree's BVH4 and tinybvh's BVH4_GPU), in one of two
-// layouts (bvh.py picks one per device):
-// float, 128 bytes per node (devices that run work items one after the other: PoCL):
-//   bvh_nodes  6 float4 per node: lo.x of slots 0..3, hi.x, lo.y, hi.y, lo.z, hi.z      96 bytes
-//   bvh_links  2 uint4 per node: ref of slots 0..3, then count of slots 0..3. count 0: the slot is
-//              node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count);
+// The finished structure is wide (builds 7-8): 4-wide, the binary tree with every odd level
+// dropped, or 8-wide, two levels of three dropped. A record holds the boxes of up to 4 children
+// (slots) side by side, so one float4 operation tests a plane of all four (the layout of Embree's
+// BVH4 and tinybvh's BVH4_GPU); a node is BVH_NODE_RECORDS records (record r of node n is
+// BVH_NODE_RECORDS * n + r), in one of three layouts (bvh.py picks one per device and structure):
+// float, 128 bytes per record, one record per node (bvh-ls where work items run one after the
+// other: PoCL), or float8, two per node, 256 bytes (bvh there):
+//   bvh_nodes  6 float4 per record: lo.x of slots 0..3, hi.x, lo.y, hi.y, lo.z, hi.z    96 bytes
+//   bvh_links  2 uint4 per record: ref of slots 0..3, then count of slots 0..3. count 0: the slot
+//              is node ref; count > 0: a leaf whose triangles are voxel_tris[ref .. ref + count);
 //              ref BVH_NONE: an unused slot                                             32 bytes
 // quantized (BVH_QUANTIZED), 64 bytes per node (devices that run work items in SIMD lanes: llvmpipe,
 // GPUs), the children's boxes in 8 bits per plane on a grid of the node's own (Mahovsky 2005;
@@ -40,6 +42,13 @@
 #define BVH_STACK 64  // the traversal's stack: the build compiles it with the tree's depth (bvh.py)
 #endif
 #define BVH_FLT_MAX 3.4028235e38f
+// 4-slot records per node: 1 (4-wide nodes) or 2 (8-wide, the float8 layout: slots 0..3 in record
+// 2 * node, 4..7 in record 2 * node + 1). A node at a depth that BVH_LEVELS divides opens its kept
+// descendants of the next BVH_LEVELS - 1 levels (bvh_wide_flags_kernel, bvh_write_kernel).
+#ifndef BVH_NODE_RECORDS
+#define BVH_NODE_RECORDS 1
+#endif
+#define BVH_LEVELS (BVH_NODE_RECORDS + 1)
 
 #ifdef LANG_GLSL
 #define BVH_CLZ(x) (31 - findMSB(x))
@@ -441,25 +450,26 @@ INLINE void bvh_keep_kernel(CTX_PARAM uint node) {
 #endif
 
 #ifdef KERNEL_bvh_wide_flags
-// ---- Build 7: which kept nodes head a 4-wide node: those at an even depth ------------------
+// ---- Build 7: which kept nodes head a wide node: those at a depth that BVH_LEVELS divides ----
 // The binary tree becomes 4-wide by dropping every odd level: a node at an even depth takes its
 // children, and where a child is a kept inner node (odd depth) that child's two children instead
-// (up to 4 slots). Depth: the kept ancestors (every ancestor of a kept node is kept); the deepest
-// is ~bvh_depth[0] (the atomics have a min, not a max), for the traversal's stack size.
+// (up to 4 slots); 8-wide (BVH_NODE_RECORDS 2) by dropping two levels of three (up to 8 slots).
+// Depth: the kept ancestors (every ancestor of a kept node is kept); the deepest is ~bvh_depth[0]
+// (the atomics have a min, not a max), for the traversal's stack size.
 INLINE void bvh_wide_flags_kernel(CTX_PARAM uint node) {
     uint flag = 0u;
     if (V(bvh_keep)[node] != 0u) {
         uint depth = 0u;
         for (uint p = V(bvh_parents)[node]; p != BVH_NONE; p = V(bvh_parents)[p]) depth += 1u;
         ATOMIC_MIN(V(bvh_depth)[0], ~depth);
-        flag = (depth & 1u) == 0u ? 1u : 0u;
+        flag = (depth % U32(BVH_LEVELS)) == 0u ? 1u : 0u;
     }
     V(bvh_wide_flags)[node] = flag;
 }
 #endif
 
 #ifdef KERNEL_bvh_write
-// ---- Build 8: the final 4-wide nodes, one work item per inner node ---------------------------
+// ---- Build 8: the final wide nodes, one work item per inner node -----------------------------
 // bvh_ids: exclusive scan of bvh_wide_flags (node i heads wide node bvh_ids[i] iff
 // bvh_ids[i + 1] > bvh_ids[i]; the root stays 0). A slot holding a wide node links it by its id;
 // any other child (a primitive, a collapsed node) becomes a leaf of its range in voxel_tris;
@@ -473,37 +483,13 @@ INLINE WideChild bvh_leaf_or_node(CTX_PARAM uint c) {  // a slot's child: Karras
         w.ref = c & ~BVH_PRIM;
         w.count = 1u;
     } else if (V(bvh_keep)[c] != 0u) {
-        w.ref = V(bvh_ids)[c];  // a kept node at an even depth: a wide node
+        w.ref = V(bvh_ids)[c];  // a kept node at a depth BVH_LEVELS divides: a wide node
         w.count = 0u;
     } else {
         w.ref = V(bvh_ranges)[2u * c];
         w.count = V(bvh_ranges)[2u * c + 1u] - w.ref + 1u;
     }
     return w;
-}
-
-INLINE uint bvh_opens(CTX_PARAM uint c) {  // 1: child c is a kept inner node whose children take its place
-    return ((c & BVH_PRIM) == 0u && V(bvh_keep)[c] != 0u) ? 1u : 0u;
-}
-
-// Slot k of the wide node headed by `node`.
-INLINE WideChild bvh_wide_child(CTX_PARAM uint node, uint k) {
-    uint c0 = V(bvh_children)[2u * node];
-    uint c1 = V(bvh_children)[2u * node + 1u];
-    uint n0 = 1u + bvh_opens(CTX_ARG c0);
-    uint n1 = 1u + bvh_opens(CTX_ARG c1);
-    uint c = k < n0 ? c0 : c1;
-    uint j = k < n0 ? k : k - n0;
-    WideChild w;
-    if (k >= n0 + n1) {
-        w.b.lo = make_float3(0.0f, 0.0f, 0.0f);
-        w.b.hi = w.b.lo;
-        w.ref = BVH_NONE;
-        w.count = 0u;
-        return w;
-    }
-    if (bvh_opens(CTX_ARG c) != 0u) return bvh_leaf_or_node(CTX_ARG V(bvh_children)[2u * c + j]);
-    return bvh_leaf_or_node(CTX_ARG c);
 }
 
 #ifdef BVH_QUANTIZED
@@ -566,6 +552,15 @@ INLINE void bvh_store_node(CTX_PARAM uint id, WideChild a, WideChild b, WideChil
 }
 #endif
 
+INLINE WideChild bvh_no_child(void) {
+    WideChild w;
+    w.b.lo = make_float3(0.0f, 0.0f, 0.0f);
+    w.b.hi = w.b.lo;
+    w.ref = BVH_NONE;
+    w.count = 0u;
+    return w;
+}
+
 INLINE void bvh_write_kernel(CTX_PARAM uint node) {
     if (V(bvh_node_count) == 0u) {
         // No node kept (n <= leaf size): one node, slot 0 a leaf of everything, the others none.
@@ -573,16 +568,41 @@ INLINE void bvh_write_kernel(CTX_PARAM uint node) {
         all.b = V(bvh_n) == 1u ? bvh_child_box(CTX_ARG BVH_PRIM) : bvh_child_box(CTX_ARG 0u);
         all.ref = 0u;
         all.count = V(bvh_n);
-        WideChild none = all;
-        none.ref = BVH_NONE;
-        none.count = 0u;
+        WideChild none = bvh_no_child();
         bvh_store_node(CTX_ARG 0u, all, none, none, none);
+        for (uint r = 1u; r < U32(BVH_NODE_RECORDS); ++r) bvh_store_node(CTX_ARG r, none, none, none, none);
         return;
     }
     uint id = V(bvh_ids)[node];
     if (V(bvh_ids)[node + 1u] == id) return;
-    bvh_store_node(CTX_ARG id, bvh_wide_child(CTX_ARG node, 0u), bvh_wide_child(CTX_ARG node, 1u),
-                   bvh_wide_child(CTX_ARG node, 2u), bvh_wide_child(CTX_ARG node, 3u));
+    // The slots: the node's two children, each kept inner one opened into its two, for the
+    // BVH_LEVELS - 1 levels below (the next kept level heads nodes of its own), in tree order.
+    uint slots[4 * BVH_NODE_RECORDS];
+    uint opened[4 * BVH_NODE_RECORDS];
+    uint n = 2u;
+    slots[0] = V(bvh_children)[2u * node];
+    slots[1] = V(bvh_children)[2u * node + 1u];
+    for (uint level = 1u; level < U32(BVH_LEVELS); ++level) {
+        uint m = 0u;
+        for (uint i = 0u; i < n; ++i) {
+            uint c = slots[i];
+            if ((c & BVH_PRIM) == 0u && V(bvh_keep)[c] != 0u) {  // a kept inner node: opened
+                opened[m] = V(bvh_children)[2u * c];
+                opened[m + 1u] = V(bvh_children)[2u * c + 1u];
+                m += 2u;
+            } else {
+                opened[m] = c;
+                m += 1u;
+            }
+        }
+        for (uint i = 0u; i < m; ++i) slots[i] = opened[i];
+        n = m;
+    }
+    for (uint r = 0u; r < U32(BVH_NODE_RECORDS); ++r) {
+        WideChild w[4];
+        for (uint k = 0u; k < 4u; ++k) w[k] = 4u * r + k < n ? bvh_leaf_or_node(CTX_ARG slots[4u * r + k]) : bvh_no_child();
+        bvh_store_node(CTX_ARG U32(BVH_NODE_RECORDS) * id + r, w[0], w[1], w[2], w[3]);
+    }
 }
 #endif
 
@@ -602,7 +622,7 @@ INLINE void bvh_records_kernel(CTX_PARAM uint i) {
 INLINE uint comp4u(uint4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
 INLINE float comp4(float4 v, uint k) { return k == 0u ? v.x : (k == 1u ? v.y : (k == 2u ? v.z : v.w)); }
 
-// A node's slots in either layout (top of this file): the refs, the counts, and the 6 planes of
+// A record's slots in either layout (top of this file): the refs, the counts, and the 6 planes of
 // the 4 boxes side by side (lo.x of slots 0..3, hi.x, ...), as the slab tests take them.
 STRUCT(BvhPlanes) { float4 lx; float4 hx; float4 ly; float4 hy; float4 lz; float4 hz; };
 // The trace kernels bind the node buffers as "t" (bvh.py: BVH_TRACE_BUFFERS) and read texels;
@@ -617,9 +637,9 @@ STRUCT(BvhPlanes) { float4 lx; float4 hx; float4 ly; float4 hy; float4 lz; float
 #define BVH_LINK(i) V(bvh_links)[i]
 #endif
 #ifdef BVH_QUANTIZED
-INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return BVH_QNODE(4u * node + 3u); }
-INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) {
-    uint c = BVH_QNODE(4u * node + 2u).z;
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint record) { return BVH_QNODE(4u * record + 3u); }
+INLINE uint4 bvh_slot_counts(CTX_PARAM uint record) {
+    uint c = BVH_QNODE(4u * record + 2u).z;
     return make_uint4(c & 0xffu, (c >> 8) & 0xffu, (c >> 16) & 0xffu, c >> 24);
 }
 INLINE float4 bvh_q_bytes(uint w) {  // the 4 bytes of a word as floats, slot k from byte k
@@ -631,10 +651,10 @@ INLINE float4 bvh_q_plane(float org, uint e, uint w) {
     PRECISE float4 p = make_float4(org, org, org, org) + bvh_q_bytes(w) * bvh_q_step(e);
     return p;
 }
-INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
-    uint4 h = BVH_QNODE(4u * node);
-    uint4 xy = BVH_QNODE(4u * node + 1u);
-    uint4 z = BVH_QNODE(4u * node + 2u);
+INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint record) {
+    uint4 h = BVH_QNODE(4u * record);
+    uint4 xy = BVH_QNODE(4u * record + 1u);
+    uint4 z = BVH_QNODE(4u * record + 2u);
     float ox = as_float(h.x), oy = as_float(h.y), oz = as_float(h.z);
     uint ex = h.w & 0xffu, ey = (h.w >> 8) & 0xffu, ez = (h.w >> 16) & 0xffu;
     BvhPlanes p;
@@ -647,17 +667,17 @@ INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
     return p;
 }
 #else
-INLINE uint4 bvh_slot_refs(CTX_PARAM uint node) { return BVH_LINK(2u * node); }
-INLINE uint4 bvh_slot_counts(CTX_PARAM uint node) { return BVH_LINK(2u * node + 1u); }
+INLINE uint4 bvh_slot_refs(CTX_PARAM uint record) { return BVH_LINK(2u * record); }
+INLINE uint4 bvh_slot_counts(CTX_PARAM uint record) { return BVH_LINK(2u * record + 1u); }
 #ifndef KERNEL_bvh_ls_flags  // the flags read counts only: that kernel binds bvh_links alone
-INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
+INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint record) {
     BvhPlanes p;
-    p.lx = BVH_NODE(6u * node);
-    p.hx = BVH_NODE(6u * node + 1u);
-    p.ly = BVH_NODE(6u * node + 2u);
-    p.hy = BVH_NODE(6u * node + 3u);
-    p.lz = BVH_NODE(6u * node + 4u);
-    p.hz = BVH_NODE(6u * node + 5u);
+    p.lx = BVH_NODE(6u * record);
+    p.hx = BVH_NODE(6u * record + 1u);
+    p.ly = BVH_NODE(6u * record + 2u);
+    p.hy = BVH_NODE(6u * record + 3u);
+    p.lz = BVH_NODE(6u * record + 4u);
+    p.hz = BVH_NODE(6u * record + 5u);
     return p;
 }
 #endif
@@ -666,7 +686,7 @@ INLINE BvhPlanes bvh_node_planes(CTX_PARAM uint node) {
 
 #if defined(KERNEL_bvh_ls_cells) || defined(KERNEL_trace_bvh_ls)
 // ---- bvh-ls: a Line Space per large leaf ------------------------------------------------------
-// Cells are the child slots, 4 per node (cell = 4 * node + slot): a slot that is a leaf of more
+// Cells are the child slots, 4 per record (cell = 4 * record + slot): a slot that is a leaf of more
 // than ls_min_count triangles gets a Line Space (ls_ids: exclusive scan of those flags, trace.h's
 // cell_line_space). Its box, the leaf's box with every side at least BVH_LS_MIN_SIDE of its longest
 // (a flat leaf, a wall, still has a cell-local space whose unit faces the float32 patch lookup can
@@ -685,9 +705,9 @@ INLINE Box bvh_ls_box(Box b) {
     return padded;
 }
 
-// The box of slot `slot` of node `node` (as the traversal's slab test sees it, in either layout).
-INLINE Box bvh_slot_box(CTX_PARAM uint node, uint slot) {
-    BvhPlanes p = bvh_node_planes(CTX_ARG node);
+// The box of slot `slot` of record `record` (as the traversal's slab test sees it, in either layout).
+INLINE Box bvh_slot_box(CTX_PARAM uint record, uint slot) {
+    BvhPlanes p = bvh_node_planes(CTX_ARG record);
     Box b;
     b.lo = make_float3(comp4(p.lx, slot), comp4(p.ly, slot), comp4(p.lz, slot));
     b.hi = make_float3(comp4(p.hx, slot), comp4(p.hy, slot), comp4(p.hz, slot));
@@ -706,11 +726,11 @@ INLINE void bvh_ls_flags_kernel(CTX_PARAM uint cell) {
 INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
     uint c = V(ls_ids)[cell];
     if (V(ls_ids)[cell + 1u] == c) return;
-    uint node = cell >> 2;
+    uint record = cell >> 2;
     uint slot = cell & 3u;
-    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
-    uint count = comp4u(bvh_slot_counts(CTX_ARG node), slot);
-    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG node, slot));
+    uint first = comp4u(bvh_slot_refs(CTX_ARG record), slot);
+    uint count = comp4u(bvh_slot_counts(CTX_ARG record), slot);
+    Box b = bvh_ls_box(bvh_slot_box(CTX_ARG record, slot));
     float3 lo = to_grid(CTX_ARG b.lo);
     float3 hi = to_grid(CTX_ARG b.hi);
     V(ls_cell_boxes)[2u * c] = make_float4(lo.x, lo.y, lo.z, 0.0f);
@@ -722,7 +742,7 @@ INLINE void bvh_ls_cells_kernel(CTX_PARAM uint cell) {
 
 #if defined(KERNEL_trace_bvh) || defined(KERNEL_trace_bvh_ls)
 // ---- Traversal ----------------------------------------------------------------------------------
-// World space. The slab test of a node's 4 slots at once (float4 lanes, the layout's point); a
+// World space. The slab test of a record's 4 slots at once (float4 lanes, the layout's point); a
 // zero direction component gets 1/d = FLT_MAX instead of infinity (0 * inf would be NaN for an
 // origin in a slab's plane; the build's boxes are exact float min/max, so only a ray in a
 // triangle's own plane meets a plane exactly, and then it grazes). t_far is widened by 2 gamma(3)
@@ -736,7 +756,7 @@ INLINE float bvh_rcp(float x) {
 }
 
 #define BVH_WIDEN 1.0000007f
-#define BVH_LEAF 0x80000000u  // a stack entry: a leaf, by its cell 4 * node + slot
+#define BVH_LEAF 0x80000000u  // a stack entry: a leaf, by its cell 4 * record + slot
 
 // The candidates of leaf `cell`: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
 // Space, the shaft of the ray's chord through the leaf's (padded) box: the ray in the box's own
@@ -747,12 +767,12 @@ INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf
 #endif
 
 INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
-    uint node = cell >> 2;
+    uint record = cell >> 2;
     uint slot = cell & 3u;
-    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
-    Candidates c = plain_list(first, first + comp4u(bvh_slot_counts(CTX_ARG node), slot));
+    uint first = comp4u(bvh_slot_refs(CTX_ARG record), slot);
+    Candidates c = plain_list(first, first + comp4u(bvh_slot_counts(CTX_ARG record), slot));
 #ifdef LEAF_LINE_SPACE
-    Box leaf = bvh_slot_box(CTX_ARG node, slot);
+    Box leaf = bvh_slot_box(CTX_ARG record, slot);
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
     float3 a = (leaf.lo - ray.o) * inv;
     float3 b = (leaf.hi - ray.o) * inv;
@@ -802,18 +822,28 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 #ifdef BVH_QUANTIZED
 #define BVH_PREFETCH_NODE(ref_) PREFETCH(&V(bvh_qnodes)[4u * (ref_)]);
 #else
+#if BVH_NODE_RECORDS == 2
+#define BVH_PREFETCH_NODE(ref_) {                                             \
+        PREFETCH(&V(bvh_nodes)[12u * (ref_)]);                                \
+        PREFETCH(&V(bvh_nodes)[12u * (ref_) + 4u]);                           \
+        PREFETCH(&V(bvh_nodes)[12u * (ref_) + 8u]);                           \
+        PREFETCH(&V(bvh_links)[4u * (ref_)]);                                 \
+    }
+#else
 #define BVH_PREFETCH_NODE(ref_) {                                             \
         PREFETCH(&V(bvh_nodes)[6u * (ref_)]);                                 \
         PREFETCH(&V(bvh_nodes)[6u * (ref_) + 5u]);                            \
         PREFETCH(&V(bvh_links)[2u * (ref_)]);                                 \
     }
 #endif
+#endif
 #define BVH_PREFETCH_ENTRY(ref_, count_) {                                    \
         if ((count_) == 0u) BVH_PREFETCH_NODE(ref_)                           \
         else BVH_PREFETCH_LEAF(ref_, count_)                                  \
     }
-// The stack entry of slot k_ of `node`: its child node, or the leaf by its cell 4 * node + slot.
-#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? (BVH_LEAF | (4u * node + (k_))) : (ref_))
+// The stack entry of slot k_ of `record` (the node's record being visited): its child node, or the
+// leaf by its cell 4 * record + slot.
+#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? (BVH_LEAF | (4u * record + (k_))) : (ref_))
 #define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
     if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                              \
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
@@ -880,8 +910,9 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // Then entries are popped, nearest first; the nearest hit slot, when a node, is visited next
 // without the pop loop's checks (its entry lies before the closest hit: tn <= tf <= best; PoCL,
 // Sponza 512² primary: 0.949 and 0.977 of the device time, medians of 20 alternated pairs of
-// lsbench.profile.ab; incoherent rays and llvmpipe unchanged, 1.005 and 1.002). Stack: at most 3
-// entries per level of the path plus one node's 4 (BVH_STACK, from the tree's depth: bvh.py).
+// lsbench.profile.ab; incoherent rays and llvmpipe unchanged, 1.005 and 1.002). Stack: at most
+// width - 1 entries per node of the path plus one node's width (BVH_STACK, from the tree's
+// depth: bvh.py).
 // BVH_NEAREST_NEXT, after a visit that pushed from `base` on: the nearest hit slot, when a node,
 // popped and visited next (`continue`: the walk's loop that holds it); else node = BVH_NONE.
 #define BVH_NEAREST_NEXT                                                               \
@@ -946,10 +977,10 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     }
 #endif
 
-// The single ray's node visit: the slab test of a node's 4 slots at once in float4 lanes.
-#define BVH_VISIT_RAY {                                                                 \
-        tr = trace_tick(tr);                                                           \
-        BvhPlanes pl = bvh_node_planes(CTX_ARG node);                                  \
+// The single ray's node visit: the slab test of each record's 4 slots at once in float4 lanes.
+#define BVH_VISIT_RECORD(record_) {                                                     \
+        uint record = (record_);                                                       \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                \
         float4 ax = (pl.lx - ox) * inv.x;                                              \
         float4 bx = (pl.hx - ox) * inv.x;                                              \
         float4 ay = (pl.ly - oy) * inv.y;                                              \
@@ -960,10 +991,15 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         float best = tr.best.t;                                                        \
         float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,   \
                         make_float4(best, best, best, best));                          \
-        uint4 refs = bvh_slot_refs(CTX_ARG node);                                      \
-        uint4 counts = bvh_slot_counts(CTX_ARG node);                                  \
+        uint4 refs = bvh_slot_refs(CTX_ARG record);                                    \
+        uint4 counts = bvh_slot_counts(CTX_ARG record);                                \
         BVH_SLOTS(tn, tf, refs, counts)                                                \
     }
+#if BVH_NODE_RECORDS == 2
+#define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_VISIT_RECORD(2u * node) BVH_VISIT_RECORD(2u * node + 1u) }
+#else
+#define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_VISIT_RECORD(node) }
+#endif
 
 #ifdef QUERY_ANY
 #define BVH_RAY_DONE (tr.best.prim >= 0)
@@ -1047,10 +1083,10 @@ STRUCT(Packet) {
 // runs ray_triangle_wt itself for its distance, so a lane hits exactly what its own test hits.
 // prune[l]: lane l's bound of the walk (its closest hit; QUERY_ANY: -inf once it has a hit).
 INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, uint e) {
-    uint node = (e & ~BVH_LEAF) >> 2;
+    uint record = (e & ~BVH_LEAF) >> 2;
     uint slot = e & 3u;
-    uint first = comp4u(bvh_slot_refs(CTX_ARG node), slot);
-    uint end = first + comp4u(bvh_slot_counts(CTX_ARG node), slot);
+    uint first = comp4u(bvh_slot_refs(CTX_ARG record), slot);
+    uint end = first + comp4u(bvh_slot_counts(CTX_ARG record), slot);
     for (uint i = first; i < end; ++i) {
         uint tri = V(voxel_tris)[i];
 #ifdef LIST_ORDER_RECORDS
@@ -1116,18 +1152,31 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
 #else
 #define BVH_PACKET_TICK
 #endif
-#define BVH_VISIT_PACKET {                                                                      \
-        BVH_PACKET_TICK                                                                         \
-        floatP best = VLOADP(0, prune);                                                         \
-        BvhPlanes pl = bvh_node_planes(CTX_ARG node);                                           \
+#define BVH_PACKET_RECORD(record_) {                                                            \
+        uint record = (record_);                                                                \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                         \
         float4 lx = pl.lx, hx = pl.hx, ly = pl.ly, hy = pl.hy, lz = pl.lz, hz = pl.hz;          \
-        uint4 refs = bvh_slot_refs(CTX_ARG node);                                               \
-        uint4 counts = bvh_slot_counts(CTX_ARG node);                                           \
+        uint4 refs = bvh_slot_refs(CTX_ARG record);                                             \
+        uint4 counts = bvh_slot_counts(CTX_ARG record);                                         \
         BVH_PACKET_SLOT(0u, x)                                                                  \
         BVH_PACKET_SLOT(1u, y)                                                                  \
         BVH_PACKET_SLOT(2u, z)                                                                  \
         BVH_PACKET_SLOT(3u, w)                                                                  \
     }
+#if BVH_NODE_RECORDS == 2
+#define BVH_VISIT_PACKET {                                                                      \
+        BVH_PACKET_TICK                                                                         \
+        floatP best = VLOADP(0, prune);                                                         \
+        BVH_PACKET_RECORD(2u * node)                                                            \
+        BVH_PACKET_RECORD(2u * node + 1u)                                                       \
+    }
+#else
+#define BVH_VISIT_PACKET {                                                                      \
+        BVH_PACKET_TICK                                                                         \
+        floatP best = VLOADP(0, prune);                                                         \
+        BVH_PACKET_RECORD(node)                                                                 \
+    }
+#endif
 #ifdef QUERY_ANY
 #define BVH_PACKET_DONE (HREDUCE(max, VLOADP(0, prune)) == -INF_F)
 #else
