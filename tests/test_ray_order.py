@@ -54,7 +54,7 @@ def test_reordered_hits_are_the_given_orders_and_embrees(device, monkeypatch, st
     finally:
         built.release()
     assert given.order == "given" and ordered.order == "origin-cells" and sliced.order == "origin-cells"
-    assert sliced.slices > 1 or structure == "bvh"  # bvh runs its rays whole in the first slice (bvh.h)
+    assert sliced.slices > 1 or structure == "bvh"  # bvh runs its rays whole in one launch (Built.suspends)
     assert whole.order == "origin-cells" and whole.slices == 1
     for hits in (ordered, sliced, whole):
         assert np.array_equal(hits.prim_ids, given.prim_ids)

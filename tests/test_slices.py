@@ -197,3 +197,28 @@ def test_records_name_the_slice_budget_in_force(monkeypatch):
     forced = execute(Case("cornell", "grid", "opencl", "8", width=16, height=16), settings)
     assert forced["status"] == "ok" and forced["unexplained"] == 0
     assert forced["slice_budget"] == 4 and forced["trace_slices"] > 1
+
+
+@pytest.mark.parametrize("structure", ["bvh", "bvh-ls"])
+def test_a_walk_that_cannot_suspend_runs_in_one_launch(tiny_rays, structure):
+    """bvh and bvh-ls keep their walk's state in a stack, so they cannot suspend at a budget
+    (BuildResult.suspends): on llvmpipe, and with any budget given, their rays run whole in one
+    launch (no slice state, no ray list), with the hits of that launch, Embree's agreement, and a
+    record saying no budget was in force."""
+    scene, sets = tiny_rays
+    rays = sets["closest"]
+    device = backends.get_device("glsl")
+    built = backends.build(device, structure, scene, BuildParams(**structure_params(structure)))
+    try:
+        assert built.suspends is False
+        hits = [backends.trace(built, rays), backends.trace(built, rays, budget=5)]
+        timing = backends.time_trace(built, rays, warmup=0, repeats=1, budget=5)
+    finally:
+        built.release()
+    assert "slices" not in timing.clock
+    ref_p, ref_t = embree_closest(scene, rays)
+    for h in hits:
+        assert h.slices == 1 and h.slice_budget is None
+        np.testing.assert_array_equal(_bits(h)[0], _bits(hits[0])[0])
+        _, cl = judge_hits(scene, rays, h.prim_ids, h.distances, ref_p, ref_t)
+        assert cl.unexplained == 0, cl

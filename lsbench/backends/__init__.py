@@ -121,7 +121,7 @@ def build(device: Device, structure: str, scene, params: BuildParams) -> Built:
     if defect.startswith(("drop-reference", "drop-triangle")):
         _plant_dropped_triangle(device, result.buffers, scene, int(defect.split(":")[1]) if ":" in defect else None)
     return Built(structure, device, params, geometry, scene_buffers, result.buffers, result.uniforms,
-                 result.trace_spec, build_seconds=seconds, stats=stats)
+                 result.trace_spec, build_seconds=seconds, stats=stats, suspends=result.suspends)
 
 
 _warm: set[int] = set()
@@ -343,6 +343,15 @@ def slice_budget(device: Device, budget=DEVICE_BUDGET) -> int | None:
     return None if budget is None else int(budget)
 
 
+def _walk_budget(built: Built, budget) -> int | None:
+    """The slice budget of a trace of `built`: slice_budget's, or None (one launch) for a walk that
+    cannot suspend (Built.suspends false: bvh, bvh-ls), whose rays run whole in the first slice
+    anyway, so the slices' state loads, list and read-back would be all they add (bvh glsl, BMW
+    256² primary rays: 0.79 of the device time in one launch; docs/profiles.md, section 19). A ray
+    whose loops the driver still cuts fails the trace as in slices (LOOP_CUT_PRIM)."""
+    return slice_budget(built.device, budget) if built.suspends else None
+
+
 def _dispatch(d: Device, *args) -> None:
     """An untimed slice launch (_run_slices' `launch`)."""
     d.dispatch(*args)
@@ -383,7 +392,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     spec = with_work_counters(spec, d) if work else spec
-    budget = slice_budget(d, budget)
+    budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
     ordered, probe = trace_order(built, rays, width, budget)
     before = _sort_steps(built, rays, ordered)
@@ -415,7 +424,7 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     In bounded slices (slice_budget) a timed trace is all its slices, their device times summed,
     warm-up traces and `between()` around whole traces; in a sorted order (trace_order) the sort's
     launches are in it too."""
-    budget = slice_budget(built.device, budget)
+    budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
     return _timed_trace(built, rays, width, budget, trace_order(built, rays, width, budget)[0], warmup, repeats,
                         between)

@@ -106,6 +106,9 @@ class BuildResult:
     uniforms: dict  # the trace kernel's uniforms
     trace_spec: KernelSpec  # the closest-hit kernel of this build (its defines: depth, splits ...)
     stats: dict = field(default_factory=dict)  # counts of the build (voxels, references, nodes, ...)
+    # Whether the walk can stop at a loop budget and resume in the next launch (trace.h: SLICED);
+    # a walk that cannot (bvh, bvh-ls: their state is a stack) runs its rays whole in one launch.
+    suspends: bool = True
 
 
 @dataclass
@@ -120,6 +123,7 @@ class Built:
     trace_spec: KernelSpec
     build_seconds: float = 0.0
     stats: dict = field(default_factory=dict)
+    suspends: bool = True  # BuildResult.suspends
     # The ray order measured for each ray set traced on this structure (backends.trace_order):
     # (rays' hash, query, slice budget) -> (order, {order: probe seconds})
     ray_orders: dict = field(default_factory=dict)

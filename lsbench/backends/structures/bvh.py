@@ -396,7 +396,7 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         for b in buffers.values():
             device.release(b)
         raise
-    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats, device), stats)
+    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats, device), stats, suspends=False)
 
 
 def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBuffer, n_tris: int) -> DeviceBuffer:

@@ -96,7 +96,7 @@ class LineSpaceBVH:
             # llvmpipe paid them once per visit (docs/profiles.md, section 17: 0.77-0.92 of the device
             # time; bvh's leaves of 2 gain nothing, PoCL neither).
             spec = spec.with_defines(BVH_WHILE_WHILE=1)
-        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(spec), stats)
+        return BuildResult(buffers, linespace.uniforms(geometry, n), ls.trace_spec(spec), stats, suspends=False)
 
 
 bvh_ls = LineSpaceBVH()

@@ -1008,14 +1008,11 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 #endif
 
 INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
+    // Bounded slices (trace.h, SLICED) need a walk that saves its state in 8 words; this walk's
+    // state is its stack, so it does not suspend: the host traces its rays whole in one launch on
+    // every device (BuildResult.suspends). A ray whose loops llvmpipe still cuts fails the case
+    // naming the limit (trace_finish's loop probe); a restart trail (Laine 2010) would let it resume.
     Trace tr = trace_start(CTX_ARG ray, id);
-#ifdef SLICED
-    // Bounded slices (trace.h) need a walk that saves its state in 8 words; this walk's state is
-    // its stack, so it does not suspend yet: it runs its rays whole in the first slice (a budget
-    // no ray spends). A ray whose loops llvmpipe still cuts fails the case naming the limit
-    // (backends/__init__.py: _run_slices); a restart trail (Laine 2010) would let it resume.
-    tr.budget = 0xffffffffu;
-#endif
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
     float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
     float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
