@@ -339,7 +339,8 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
             temps.append(depth_buf)
             device.dispatch(with_node_layout(WIDE_FLAGS, layout), inner,
-                            {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide, "bvh_depth": depth_buf}, u)
+                            {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide,
+                             "bvh_depth": depth_buf}, u)
             stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
             stats["wide_depth"] = stats["depth"] // (records + 1) + 1  # wide nodes on the deepest path
             ids, n_nodes = device.exclusive_scan(wide, inner, "bvh_ids")
@@ -421,5 +422,6 @@ def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
     levels). Where the driver runs work items in SIMD lanes, a node's hit slots are sorted in
     registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
     width = stats["width"]
-    spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=(width - 1) * stats["wide_depth"] + width)
+    stack = (width - 1) * stats["wide_depth"] + width
+    spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=stack)
     return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

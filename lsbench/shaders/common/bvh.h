@@ -3,9 +3,9 @@
 // construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
 // collapse, treelet restructuring after Karras & Aila 2013), made 4- or 8-wide, and its stack
 // traversal (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency
-// of ray traversal on GPUs", 4 or 8 of them as Embree's BVH4 and BVH8; nearest child first). bvh-ls gives the
-// large leaves a Line Space (linespace.h), looked up as the octree leaves do (octree_ls.h,
-// Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
+// of ray traversal on GPUs", 4 or 8 of them as Embree's BVH4 and BVH8; nearest child first).
+// bvh-ls gives the large leaves a Line Space (linespace.h), looked up as the octree leaves do
+// (octree_ls.h, Algorithm 3). Needs geometry.h; the kernels that read triangles (Morton codes, box fit, node
 // writer, Line Space cells, traversal) also scene.h, the traversal trace.h (and for bvh-ls
 // linespace.h and octree_ls.h). The host side: backends/structures/bvh.py.
 //
@@ -600,7 +600,8 @@ INLINE void bvh_write_kernel(CTX_PARAM uint node) {
     }
     for (uint r = 0u; r < U32(BVH_NODE_RECORDS); ++r) {
         WideChild w[4];
-        for (uint k = 0u; k < 4u; ++k) w[k] = 4u * r + k < n ? bvh_leaf_or_node(CTX_ARG slots[4u * r + k]) : bvh_no_child();
+        for (uint k = 0u; k < 4u; ++k)
+            w[k] = 4u * r + k < n ? bvh_leaf_or_node(CTX_ARG slots[4u * r + k]) : bvh_no_child();
         bvh_store_node(CTX_ARG U32(BVH_NODE_RECORDS) * id + r, w[0], w[1], w[2], w[3]);
     }
 }
