@@ -104,7 +104,7 @@ def check_tree(built, scene, leaf_size):
     assert np.all(covered == 1), f"{np.count_nonzero(covered != 1)} triangles not in exactly one leaf"
     assert built.stats["leaves"] == len(leaf_sizes)
     # bvh.py's stack bound: wide levels = binary depth // (levels dropped + 1) + 1
-    assert deepest + 1 <= built.stats["wide_depth"] == built.stats["depth"] // (width // 4 + 1) + 1
+    assert deepest + 1 <= bvh.wide_depth(built.stats)
     if quantized:
         check_quantized(nodes, links, tris, steps, triangles)
     return np.array(leaf_sizes)

@@ -189,7 +189,7 @@ def with_node_layout(spec: KernelSpec, layout: str) -> KernelSpec:
         return spec
     if layout == "float8":
         return spec.with_defines(BVH_NODE_RECORDS=2)
-    access = next((b.access for b in spec.buffers if b.name in FLOAT_NODE_BUFFERS), None)
+    access = next(b.access for b in spec.buffers if b.name in FLOAT_NODE_BUFFERS)
     buffers, placed = [], False
     for b in spec.buffers:
         if b.name in FLOAT_NODE_BUFFERS:
@@ -199,6 +199,17 @@ def with_node_layout(spec: KernelSpec, layout: str) -> KernelSpec:
         else:
             buffers.append(b)
     return dataclasses.replace(spec, buffers=tuple(buffers)).with_defines(BVH_QUANTIZED=1)
+
+
+def wide_flags(width: int) -> KernelSpec:
+    """Build step 7's kernel for nodes of `width` slots (bvh.h: BVH_NODE_RECORDS records of 4)."""
+    return WIDE_FLAGS if width == 4 else WIDE_FLAGS.with_defines(BVH_NODE_RECORDS=width // 4)
+
+
+def wide_depth(stats: dict) -> int:
+    """The wide nodes on the deepest path of a built tree: one per levels dropped plus one of the
+    binary depth (stats["depth"], 0 for a tree of one node)."""
+    return stats["depth"] // (stats["width"] // 4 + 1) + 1
 
 
 def check_leaf_size(value) -> int:
@@ -231,7 +242,7 @@ def prepare(device: Device) -> None:
         device.compile(spec)
     for layout in ("float8", "quantized"):
         device.compile(with_node_layout(WRITE, layout))
-        device.compile(with_node_layout(WIDE_FLAGS, layout))
+    device.compile(wide_flags(NODE_WIDTHS["float8"]))
 
 
 def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict
@@ -338,17 +349,15 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
             wide = temp("bvh_wide_flags", 4 * inner)
             depth_buf = device.upload("bvh_depth", np.array([0xFFFFFFFF], np.uint32))  # ~0: depth 0
             temps.append(depth_buf)
-            device.dispatch(with_node_layout(WIDE_FLAGS, layout), inner,
+            device.dispatch(wide_flags(width), inner,
                             {"bvh_keep": keep, "bvh_parents": parents, "bvh_wide_flags": wide,
                              "bvh_depth": depth_buf}, u)
             stats["depth"] = int(~np.uint32(device.read_uint(depth_buf, 0)) & 0xFFFFFFFF)
-            stats["wide_depth"] = stats["depth"] // (records + 1) + 1  # wide nodes on the deepest path
             ids, n_nodes = device.exclusive_scan(wide, inner, "bvh_ids")
             temps.append(ids)
         else:
             stats["sah_cost"] = stats["sah_cost_plain"] = stats["sah_cost_collapse"] = 0.0
             ids, n_nodes, n_binary, stats["depth"] = temp("bvh_ids", 4, zero=True), 0, 0, 0
-            stats["wide_depth"] = 1
             keep = temp("bvh_keep", 4, zero=True)
         if width * n_nodes >= 2**31:
             raise DeviceLimitError(f"bvh: {n_nodes} nodes overflow the traversal's 31-bit leaf entries "
@@ -422,6 +431,6 @@ def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
     levels). Where the driver runs work items in SIMD lanes, a node's hit slots are sorted in
     registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
     width = stats["width"]
-    stack = (width - 1) * stats["wide_depth"] + width
+    stack = (width - 1) * wide_depth(stats) + width
     spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=stack)
     return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

@@ -978,29 +978,40 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     }
 #endif
 
+// A node's records, each given to M (BVH_NODE_RECORDS of them: the node's slots 0..3, then 4..7).
+#if BVH_NODE_RECORDS == 2
+#define BVH_EACH_RECORD(M) M(2u * node) M(2u * node + 1u)
+#else
+#define BVH_EACH_RECORD(M) M(node)
+#endif
+// The hit slots of `record_` among its 4 entry and exit distances onto the stack (BVH_SLOTS).
+#define BVH_RECORD_SLOTS(record_, tn_, tf_) {                                          \
+        uint record = (record_);                                                       \
+        uint4 refs = bvh_slot_refs(CTX_ARG record);                                    \
+        uint4 counts = bvh_slot_counts(CTX_ARG record);                                \
+        float4 tn = (tn_), tf = (tf_);                                                 \
+        BVH_SLOTS(tn, tf, refs, counts)                                                \
+    }
 // The single ray's node visit: the slab test of each record's 4 slots at once in float4 lanes.
 #define BVH_VISIT_RECORD(record_) {                                                     \
-        uint record = (record_);                                                       \
-        BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG (record_));                             \
         float4 ax = (pl.lx - ox) * inv.x;                                              \
         float4 bx = (pl.hx - ox) * inv.x;                                              \
         float4 ay = (pl.ly - oy) * inv.y;                                              \
         float4 by = (pl.hy - oy) * inv.y;                                              \
         float4 az = (pl.lz - oz) * inv.z;                                              \
         float4 bz = (pl.hz - oz) * inv.z;                                              \
-        float4 tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0));          \
         float best = tr.best.t;                                                        \
-        float4 tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,   \
-                        make_float4(best, best, best, best));                          \
-        uint4 refs = bvh_slot_refs(CTX_ARG record);                                    \
-        uint4 counts = bvh_slot_counts(CTX_ARG record);                                \
-        BVH_SLOTS(tn, tf, refs, counts)                                                \
+        BVH_RECORD_SLOTS(record_, max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t0)), \
+                         min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,   \
+                             make_float4(best, best, best, best)))                    \
     }
 #if BVH_NODE_RECORDS == 2 && defined(LANG_OPENCL)
 // OpenCL: the 8 slots' slab test in float8 lanes (one operation per plane for both records, as
 // Embree's BVH8), the same arithmetic lane by lane as BVH_VISIT_RECORD, so the same hits; GLSL has
 // no 8-wide vectors. PoCL, 9-11 pairs of lsbench.profile.ab against two float4 tests: Sponza 256²
 // and 512² incoherent 0.959 and 0.968, BMW 512² incoherent 0.984, Sponza 512² diffuse 0.980.
+#define BVH_SLAB8 1
 #define BVH_PLANE8(k_) ((float8)(BVH_NODE(12u * node + (k_)), BVH_NODE(12u * node + 6u + (k_))))
 #define BVH_VISIT_RAY {                                                                 \
         tr = trace_tick(tr);                                                           \
@@ -1013,25 +1024,11 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         float8 tn8 = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t08));        \
         float8 tf8 = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,  \
                          (float8)(tr.best.t));                                         \
-        {                                                                              \
-            uint record = 2u * node;                                                   \
-            uint4 refs = bvh_slot_refs(CTX_ARG record);                                \
-            uint4 counts = bvh_slot_counts(CTX_ARG record);                            \
-            float4 tn = tn8.lo, tf = tf8.lo;                                           \
-            BVH_SLOTS(tn, tf, refs, counts)                                            \
-        }                                                                              \
-        {                                                                              \
-            uint record = 2u * node + 1u;                                              \
-            uint4 refs = bvh_slot_refs(CTX_ARG record);                                \
-            uint4 counts = bvh_slot_counts(CTX_ARG record);                            \
-            float4 tn = tn8.hi, tf = tf8.hi;                                           \
-            BVH_SLOTS(tn, tf, refs, counts)                                            \
-        }                                                                              \
+        BVH_RECORD_SLOTS(2u * node, tn8.lo, tf8.lo)                                    \
+        BVH_RECORD_SLOTS(2u * node + 1u, tn8.hi, tf8.hi)                               \
     }
-#elif BVH_NODE_RECORDS == 2
-#define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_VISIT_RECORD(2u * node) BVH_VISIT_RECORD(2u * node + 1u) }
 #else
-#define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_VISIT_RECORD(node) }
+#define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_EACH_RECORD(BVH_VISIT_RECORD) }
 #endif
 
 #ifdef QUERY_ANY
@@ -1051,7 +1048,7 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
     float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
     float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
-#if BVH_NODE_RECORDS == 2 && defined(LANG_OPENCL)
+#ifdef BVH_SLAB8
     float8 ox8 = (float8)(ray.o.x), oy8 = (float8)(ray.o.y), oz8 = (float8)(ray.o.z);
     float8 ix8 = (float8)(inv.x), iy8 = (float8)(inv.y), iz8 = (float8)(inv.z), t08 = (float8)(tr.tmin);
 #endif
@@ -1197,20 +1194,11 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         BVH_PACKET_SLOT(2u, z)                                                                  \
         BVH_PACKET_SLOT(3u, w)                                                                  \
     }
-#if BVH_NODE_RECORDS == 2
 #define BVH_VISIT_PACKET {                                                                      \
         BVH_PACKET_TICK                                                                         \
         floatP best = VLOADP(0, prune);                                                         \
-        BVH_PACKET_RECORD(2u * node)                                                            \
-        BVH_PACKET_RECORD(2u * node + 1u)                                                       \
+        BVH_EACH_RECORD(BVH_PACKET_RECORD)                                                      \
     }
-#else
-#define BVH_VISIT_PACKET {                                                                      \
-        BVH_PACKET_TICK                                                                         \
-        floatP best = VLOADP(0, prune);                                                         \
-        BVH_PACKET_RECORD(node)                                                                 \
-    }
-#endif
 #ifdef QUERY_ANY
 #define BVH_PACKET_DONE (HREDUCE(max, VLOADP(0, prune)) == -INF_F)
 #else
