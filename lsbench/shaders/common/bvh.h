@@ -1011,6 +1011,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // Embree's BVH8), the same arithmetic lane by lane as BVH_VISIT_RECORD, so the same hits; GLSL has
 // no 8-wide vectors. PoCL, 9-11 pairs of lsbench.profile.ab against two float4 tests: Sponza 256²
 // and 512² incoherent 0.959 and 0.968, BMW 512² incoherent 0.984, Sponza 512² diffuse 0.980.
+// The hit slots are then pushed by a mask (BVH_PUSH_MASK8), not tested slot by slot.
 #define BVH_SLAB8 1
 #define BVH_PLANE8(k_) ((float8)(BVH_NODE(12u * node + (k_)), BVH_NODE(12u * node + 6u + (k_))))
 #define BVH_VISIT_RAY {                                                                 \
@@ -1024,8 +1025,39 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         float8 tn8 = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), t08));        \
         float8 tf8 = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN,  \
                          (float8)(tr.best.t));                                         \
-        BVH_RECORD_SLOTS(2u * node, tn8.lo, tf8.lo)                                    \
-        BVH_RECORD_SLOTS(2u * node + 1u, tn8.hi, tf8.hi)                               \
+        BVH_PUSH_MASK8(tn8, tf8)                                                       \
+    }
+// The 8 slots' hits as one bit mask (a slot hit: a child, ref not BVH_NONE, and tn <= tf; one vector
+// compare), then only the hit slots pushed, lowest slot first, each by BVH_PUSH as BVH_SLOT does:
+// the same stack, so the same walk and hits. Testing the 8 slots one by one took two data-dependent
+// branches per slot, which incoherent rays mispredict (the walk's cost is its instructions and
+// branches more than its misses: docs/profiles.md, section 19); here one loop runs once per hit.
+// PoCL, medians of alternated launches in one process (docs/profiles.md, section 20), hits
+// identical: Sponza incoherent 0.959 (256², 41 pairs) and 0.955 (512²), diffuse 0.90; shadow 1.00,
+// AO 0.99. Primary rays go in packets there (their visit is BVH_VISIT_PACKET).
+// A record's links (bvh_links, 32 bytes: refs then counts) are read as 8 uints each: the node's
+// 16 at 16 * node.
+#define BVH_PUSH_MASK8(tn8, tf8) {                                                     \
+        __global const uint* links_ = (__global const uint*)V(bvh_links) + 16u * node; \
+        uint8 refs8 = (uint8)(vload4(0, links_), vload4(2, links_));                   \
+        int8 bits8 = ((tn8 <= tf8) & (refs8 != (uint8)(BVH_NONE)))                     \
+                     & (int8)(1, 2, 4, 8, 16, 32, 64, 128);                            \
+        int4 bits4 = bits8.lo | bits8.hi;                                              \
+        uint mask = U32(bits4.x | bits4.y | bits4.z | bits4.w);                        \
+        float slot_t[8];                                                               \
+        vstore8(tn8, 0, slot_t);                                                       \
+        while (mask != 0u) {                                                           \
+            uint k = LOWEST_BIT(mask);                                                 \
+            mask &= mask - 1u;                                                         \
+            uint at = 8u * (k >> 2) + (k & 3u);  /* record k / 4, slot k % 4 */        \
+            uint ref = links_[at];                                                     \
+            uint count = links_[at + 4u];                                              \
+            BVH_PREFETCH_ENTRY(ref, count)                                             \
+            /* a leaf's entry: 4 * record + slot = 8 * node + k */                     \
+            uint entry = count > 0u ? (BVH_LEAF | (8u * node + k)) : ref;              \
+            float entry_t = slot_t[k];                                                 \
+            BVH_PUSH(entry, entry_t)                                                   \
+        }                                                                              \
     }
 #else
 #define BVH_VISIT_RAY { tr = trace_tick(tr); BVH_EACH_RECORD(BVH_VISIT_RECORD) }
