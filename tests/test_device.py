@@ -69,3 +69,40 @@ def test_glsl_reads_structures_as_texels_within_the_driver_limit(monkeypatch):
             backends.trace(built, rays)
     finally:
         built.release()
+
+
+@pytest.mark.parametrize("structure", ["bvh", "esvo"])
+def test_trace_items_run_as_one_work_items_loop_where_work_items_run_one_after_the_other(structure):
+    """On PoCL's CPU device a trace kernel's work group of local_size items is one work item's
+    loop (KernelSpec.item_loop; opencl.py kernel_source): the entry point loops, the launch has one
+    work item per group, and the hits and work counters are those of one item per work item, for
+    a ray count that leaves the last group part full."""
+    import dataclasses
+
+    from lsbench import backends
+    from lsbench.backends import BuildParams
+    from lsbench.backends.opencl import kernel_source
+    from lsbench.inputs.rays import make_rays
+    from lsbench.inputs.scenes import load_scene
+
+    device = backends.get_device("opencl")
+    if not device.serial_work_items:
+        pytest.skip("the item loop is for devices that run work items one after the other")
+    scene = load_scene("cornell")
+    rays = make_rays("incoherent", scene, 37, 29, None, ())  # 1073 rays: 16 groups of 64 and one of 49
+    built = backends.build(device, structure, scene, BuildParams(resolution=(16,) * 3))
+    try:
+        spec = built.trace_spec
+        assert spec.item_loop and spec.local_size == 64
+        looped = kernel_source(spec, item_loop=True)
+        assert "for (uint gid = first; gid < end; ++gid)" in looped and "if (gid >= n_items)" not in looped
+        assert "for (uint gid" not in kernel_source(spec)
+        got = backends.trace(built, rays, work=True)
+        one_per_item = dataclasses.replace(built, trace_spec=dataclasses.replace(spec, item_loop=False))
+        want = backends.trace(one_per_item, rays, work=True)
+        assert (want.prim_ids >= 0).sum() > 500
+        np.testing.assert_array_equal(got.prim_ids, want.prim_ids)
+        np.testing.assert_array_equal(got.distances, want.distances)
+        np.testing.assert_array_equal(got.work, want.work)
+    finally:
+        built.release()

@@ -13,6 +13,7 @@ cells with a Line Space; COUNT_WORK: profiling counters; OCT_DEPTH, LS_CLIP_SH, 
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from lsbench.paths import SHADER_ROOT
@@ -50,16 +51,24 @@ class KernelSpec:
     uniforms: tuple[Uniform, ...] = ()
     defines: tuple[tuple[str, str], ...] = ()
     local_size: int = 64
+    # Where the device runs a work group's items one after the other (Device.serial_work_items:
+    # PoCL's CPU device), run them as a loop of one work item instead: OpenCL launches work groups
+    # of 1 whose entry point calls the body for local_size consecutive items (opencl.py
+    # kernel_source). PoCL's own loop over a group's work items keeps every private array of the
+    # body (a walk's stack) once per work item, addressed by the item's index (a multiply and a
+    # reload at each stack access); in one item's loop it is one plain array. Trace kernels set it
+    # (trace_spec): bvh on Sponza 256² incoherent rays 0.91-0.92 of the device time, Sponza
+    # 512² primary rays in packets 0.97, grid 0.98, esvo 1.00 (docs/profiles.md, section 20).
+    item_loop: bool = False
 
     def with_defines(self, **defines: object) -> "KernelSpec":
         extra = tuple((k, str(v)) for k, v in sorted(defines.items()))
-        return KernelSpec(self.name, self.headers, self.body, self.buffers, self.uniforms,
-                          self.defines + extra, self.local_size)
+        return dataclasses.replace(self, defines=self.defines + extra)
 
     @property
     def key(self) -> tuple:
         return (self.name, self.headers, self.body, self.buffers, self.uniforms, self.defines,
-                self.local_size)
+                self.local_size, self.item_loop)
 
 
 def read_common(headers: tuple[str, ...]) -> str:
@@ -130,4 +139,4 @@ def trace_spec(name: str, headers: tuple[str, ...], body: str, structure_buffers
     common = LS_TRACE_HEADERS if line_space else TRACE_HEADERS
     defines = (("TRIANGLE_RECORDS", "1"),) + ((("LEAF_LINE_SPACE", "1"),) if line_space else ())
     return KernelSpec(name, common + headers, body, TRACE_SCENE_BUFFERS + structure_buffers + RAY_BUFFERS,
-                      uniforms, defines)
+                      uniforms, defines, item_loop=True)

@@ -24,8 +24,10 @@ def _prelude() -> str:
     return (SHADER_ROOT / "opencl" / "prelude.cl").read_text()
 
 
-def kernel_source(spec: KernelSpec) -> str:
-    """Ctx struct with every buffer pointer and scalar, the shared code, and the entry point."""
+def kernel_source(spec: KernelSpec, item_loop: bool = False) -> str:
+    """Ctx struct with every buffer pointer and scalar, the shared code, and the entry point: one
+    item per work item, or with `item_loop` (KernelSpec.item_loop on a device that runs work items
+    one after the other) local_size consecutive items per work item, in a loop."""
     fields, params, assigns = [], [], []
     for b in spec.buffers:
         const = "const " if b.access in ("r", "t") else ""
@@ -42,9 +44,12 @@ def kernel_source(spec: KernelSpec) -> str:
         + "typedef struct {\n" + "\n".join(fields) + "\n} Ctx;\n"
         + read_common(spec.headers)
         + f"\n__kernel void k_{spec.name}(" + ", ".join(params) + ") {\n"
-        + "    uint gid = (uint)get_global_id(0);\n    if (gid >= n_items) return;\n"
         + "    Ctx c;\n" + "\n".join(assigns) + "\n"
-        + f"    {spec.body}(&c, gid);\n}}\n")
+        + (f"    uint first = (uint)get_global_id(0) * {spec.local_size}u;\n"
+           f"    uint end = min(first + {spec.local_size}u, n_items);\n"
+           f"    for (uint gid = first; gid < end; ++gid) {spec.body}(&c, gid);\n}}\n" if item_loop else
+           "    uint gid = (uint)get_global_id(0);\n    if (gid >= n_items) return;\n"
+           f"    {spec.body}(&c, gid);\n}}\n"))
 
 
 def _numpy_scalar(type_name: str, value):
@@ -282,10 +287,13 @@ class OpenCLDevice(Device):
         return {"available": False, "unit": None, "source": None, "note": f"no device clock on {name}: {why}"}
 
     # --- kernels ---------------------------------------------------------------------------
+    def _item_loop(self, spec: KernelSpec) -> bool:
+        return spec.item_loop and self.serial_work_items
+
     def compile(self, spec: KernelSpec):
         knl = self._programs.get(spec.key)
         if knl is None:
-            src = kernel_source(spec)
+            src = kernel_source(spec, self._item_loop(spec))
             try:
                 prog = self.cl.Program(self.ctx, src).build()
             except self.cl.Error as exc:
@@ -311,6 +319,8 @@ class OpenCLDevice(Device):
         knl = self.compile(spec)
         local = spec.local_size
         global_size = ((n_items + local - 1) // local) * local
+        if self._item_loop(spec):  # work groups of one item that loops over `local` (kernel_source)
+            global_size, local = global_size // local, 1
         try:
             event = knl(self.queue, (global_size,), (local,), *args)
         except self.cl.Error as exc:
