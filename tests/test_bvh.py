@@ -462,6 +462,45 @@ def test_all_node_layouts_find_the_same_hits(device, structure, scene_name):
             b.release()
 
 
+@pytest.mark.parametrize("leaf_size", [1, 2, 255])
+def test_leaf_entries_that_hold_their_range_find_what_cell_entries_find(device, monkeypatch, leaf_size):
+    """bvh's stack holds a leaf as its range of voxel_tris (bvh.h BVH_LEAF_RANGE_BITS: first << bits
+    | count, bits from the leaf size) where the triangle count fits the bits left, else as its cell
+    (4 * record + slot, the range read from the node's links; bvh-ls always: its Line Spaces are
+    found by cell). Both entries, in every node layout, one ray per work item and in packets: the
+    same hits, distances and work per ray, on the renderer's rays and on the adversarial scene's."""
+    assert bvh.leaf_range_bits({"leaf_size": 2, "triangles": 2**29 - 1}) == 2
+    assert bvh.leaf_range_bits({"leaf_size": 2, "triangles": 2**29}) == 0
+    assert bvh.leaf_range_bits({"leaf_size": 255, "triangles": 2**23 - 1}) == 8
+    assert bvh.leaf_range_bits({"leaf_size": 255, "triangles": 2**23}) == 0
+    scene = load_scene("adversarial")
+    sets = [primary_rays(scene, 29, 23), make_rays("incoherent", scene, 27, 21, None, {}),
+            make_rays("adversarial", scene, 1, 1, None, {})]
+    for layout in bvh.NODE_LAYOUTS:
+        built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1), leaf_size=leaf_size,
+                                                                 options={"bvh_nodes": layout}))
+        try:
+            defines = dict(built.trace_spec.defines)
+            assert defines["BVH_LEAF_RANGE_BITS"] == str(leaf_size.bit_length())
+            cells = dataclasses.replace(built, trace_spec=dataclasses.replace(built.trace_spec, defines=tuple(
+                (k, v) for k, v in built.trace_spec.defines if k != "BVH_LEAF_RANGE_BITS")))
+            for packet in ("1", "8") if device.backend == "opencl" else ("1",):
+                monkeypatch.setenv("LSBENCH_PACKET", packet)
+                for rays in sets:
+                    ours, theirs = backends.trace(built, rays, work=True), backends.trace(cells, rays, work=True)
+                    assert (ours.prim_ids >= 0).any(), rays.name
+                    np.testing.assert_array_equal(ours.prim_ids, theirs.prim_ids, err_msg=f"{layout} {rays.name}")
+                    np.testing.assert_array_equal(ours.distances, theirs.distances, err_msg=f"{layout} {rays.name}")
+                    np.testing.assert_array_equal(ours.work[:, :3], theirs.work[:, :3], err_msg=f"{layout} {rays.name}")
+        finally:
+            built.release()
+    ls = backends.build(device, "bvh-ls", scene, BuildParams(resolution=(1, 1, 1), ls_n=2, ls_min_candidates=8))
+    try:
+        assert "BVH_LEAF_RANGE_BITS" not in dict(ls.trace_spec.defines)
+    finally:
+        ls.release()
+
+
 def test_node_layout_is_checked(device):
     """options["bvh_nodes"]: auto picks by the device (float where work items run one after the
     other, quantized in SIMD lanes); anything else is one line naming the allowed values."""

@@ -406,7 +406,8 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
         for b in buffers.values():
             device.release(b)
         raise
-    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats, device), stats, suspends=False)
+    return BuildResult(buffers, geometry.uniforms(), traversal(TRACE_BVH, stats, device, leaf_ranges=True), stats,
+                       suspends=False)
 
 
 def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBuffer, n_tris: int) -> DeviceBuffer:
@@ -424,13 +425,27 @@ def leaf_order_records(device: Device, scene_buffers: dict, voxel_tris: DeviceBu
     return records
 
 
-def traversal(spec: KernelSpec, stats: dict, device: Device) -> KernelSpec:
+def leaf_range_bits(stats: dict) -> int:
+    """The bits of a leaf's triangle count in a stack entry that holds the leaf's range (bvh.h:
+    BVH_LEAF_RANGE_BITS, first << bits | count, below the leaf flag): enough for the tree's leaf
+    size, or 0 (the entry holds the leaf's cell) where the first triangle would not fit the 31 - bits
+    left."""
+    bits = int(stats["leaf_size"]).bit_length()
+    return bits if stats["triangles"] < 2 ** (31 - bits) else 0
+
+
+def traversal(spec: KernelSpec, stats: dict, device: Device, leaf_ranges: bool = False) -> KernelSpec:
     """The trace kernel for the built tree: its node layout (stats["node_layout"]), its stack sized
     to the tree: width - 1 entries per wide node of the deepest path plus one node's width (bvh.h:
     trace_bvh; the treelet restructuring may make a tree deeper than the Karras hierarchy's ~64
     levels). Where the driver runs work items in SIMD lanes, a node's hit slots are sorted in
-    registers before they are pushed (bvh.h: BVH_SORT_SLOTS)."""
+    registers before they are pushed (bvh.h: BVH_SORT_SLOTS). `leaf_ranges` (bvh, whose leaves are
+    only a range of voxel_tris; bvh-ls finds a leaf's Line Space by its cell): a leaf's stack entry
+    holds its range where it fits (leaf_range_bits)."""
     width = stats["width"]
     stack = (width - 1) * wide_depth(stats) + width
     spec = with_node_layout(spec, stats["node_layout"]).with_defines(BVH_STACK=stack)
+    bits = leaf_range_bits(stats) if leaf_ranges else 0
+    if bits:
+        spec = spec.with_defines(BVH_LEAF_RANGE_BITS=bits)
     return spec if device.serial_work_items else spec.with_defines(BVH_SORT_SLOTS=1)

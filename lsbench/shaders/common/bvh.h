@@ -757,7 +757,32 @@ INLINE float bvh_rcp(float x) {
 }
 
 #define BVH_WIDEN 1.0000007f
-#define BVH_LEAF 0x80000000u  // a stack entry: a leaf, by its cell 4 * record + slot
+#define BVH_LEAF 0x80000000u  // a stack entry: a leaf (BVH_LEAF_ENTRY), else a node
+
+// A leaf's stack entry, BVH_LEAF | leaf: its cell (4 * record + slot), whose links give its range of
+// voxel_tris, or with BVH_LEAF_RANGE_BITS = b (bvh: its leaves need nothing but their range; bvh.py
+// traversal, where the triangle count leaves 31 - b bits for the first) the range itself,
+// first << b | count, so that a popped leaf's record loads wait for no load of its node's links
+// (a line the walk may have left long before). Sponza 256² incoherent rays, PoCL: 0.956 of the
+// device time (25 alternated pairs), 512² primary rays in packets 0.985, BMW 512² incoherent 0.975;
+// llvmpipe 0.927 and 0.979 (Sponza 256² incoherent, primary); hits identical
+// (docs/profiles.md, section 20).
+#ifdef BVH_LEAF_RANGE_BITS
+#ifdef LEAF_LINE_SPACE
+#error "a leaf with a Line Space is found by its cell: BVH_LEAF_RANGE_BITS is for leaves without one"
+#endif
+#define BVH_LEAF_ENTRY(cell_, ref_, count_) (BVH_LEAF | ((ref_) << BVH_LEAF_RANGE_BITS) | (count_))
+INLINE uint2 bvh_leaf_range(CTX_PARAM uint leaf) {
+    uint first = leaf >> BVH_LEAF_RANGE_BITS;
+    return make_uint2(first, first + (leaf & ((1u << BVH_LEAF_RANGE_BITS) - 1u)));
+}
+#else
+#define BVH_LEAF_ENTRY(cell_, ref_, count_) (BVH_LEAF | (cell_))
+INLINE uint2 bvh_leaf_range(CTX_PARAM uint cell) {
+    uint first = comp4u(bvh_slot_refs(CTX_ARG cell >> 2), cell & 3u);
+    return make_uint2(first, first + comp4u(bvh_slot_counts(CTX_ARG cell >> 2), cell & 3u));
+}
+#endif
 
 // The candidates of leaf `cell`: its range of voxel_tris, or for bvh-ls, where the leaf has a Line
 // Space, the shaft of the ray's chord through the leaf's (padded) box: the ray in the box's own
@@ -768,12 +793,10 @@ INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf
 #endif
 
 INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
-    uint record = cell >> 2;
-    uint slot = cell & 3u;
-    uint first = comp4u(bvh_slot_refs(CTX_ARG record), slot);
-    Candidates c = plain_list(first, first + comp4u(bvh_slot_counts(CTX_ARG record), slot));
+    uint2 range = bvh_leaf_range(CTX_ARG cell);
+    Candidates c = plain_list(range.x, range.y);
 #ifdef LEAF_LINE_SPACE
-    Box leaf = bvh_slot_box(CTX_ARG record, slot);
+    Box leaf = bvh_slot_box(CTX_ARG cell >> 2, cell & 3u);
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
     float3 a = (leaf.lo - ray.o) * inv;
     float3 b = (leaf.hi - ray.o) * inv;
@@ -843,8 +866,8 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         else BVH_PREFETCH_LEAF(ref_, count_)                                  \
     }
 // The stack entry of slot k_ of `record` (the node's record being visited): its child node, or the
-// leaf by its cell 4 * record + slot.
-#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? (BVH_LEAF | (4u * record + (k_))) : (ref_))
+// leaf (BVH_LEAF_ENTRY of its cell 4 * record + slot).
+#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? BVH_LEAF_ENTRY(4u * record + (k_), ref_, count_) : (ref_))
 #define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
     if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                              \
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
@@ -1053,8 +1076,8 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             uint ref = links_[at];                                                     \
             uint count = links_[at + 4u];                                              \
             BVH_PREFETCH_ENTRY(ref, count)                                             \
-            /* a leaf's entry: 4 * record + slot = 8 * node + k */                     \
-            uint entry = count > 0u ? (BVH_LEAF | (8u * node + k)) : ref;              \
+            /* a leaf's cell: 4 * record + slot = 8 * node + k */                      \
+            uint entry = count > 0u ? BVH_LEAF_ENTRY(8u * node + k, ref, count) : ref; \
             float entry_t = slot_t[k];                                                 \
             BVH_PUSH(entry, entry_t)                                                   \
         }                                                                              \
@@ -1146,11 +1169,8 @@ STRUCT(Packet) {
 // runs ray_triangle_wt itself for its distance, so a lane hits exactly what its own test hits.
 // prune[l]: lane l's bound of the walk (its closest hit; QUERY_ANY: -inf once it has a hit).
 INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, uint e) {
-    uint record = (e & ~BVH_LEAF) >> 2;
-    uint slot = e & 3u;
-    uint first = comp4u(bvh_slot_refs(CTX_ARG record), slot);
-    uint end = first + comp4u(bvh_slot_counts(CTX_ARG record), slot);
-    for (uint i = first; i < end; ++i) {
+    uint2 range = bvh_leaf_range(CTX_ARG e & ~BVH_LEAF);
+    for (uint i = range.x; i < range.y; ++i) {
         uint tri = V(voxel_tris)[i];
 #ifdef LIST_ORDER_RECORDS
         TriRecord T = load_candidate(CTX_ARG i);
