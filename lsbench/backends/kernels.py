@@ -4,7 +4,8 @@ A kernel's algorithm lives once, in `shaders/common/*.h`, as a function
 `void body(CTX_PARAM uint gid)` written in the small C dialect of the preludes. The spec below
 names the buffers and scalar arguments it reads; each backend generates the declarations its
 language needs (GLSL: std430 SSBOs + uniforms; OpenCL: kernel parameters gathered into a `Ctx`
-struct) and a tiny entry point that bounds-checks `gid` against `n_items` and calls the body.
+struct) and a tiny entry point that bounds-checks `gid` against `n_items` and calls the body (for
+a spec with `item_loop`, on PoCL: a loop over a work group's items in one work item).
 
 Which code of the headers compiles is chosen explicitly, never by the buffers a spec binds:
 `#define KERNEL_<name>` (the spec's name) guards the kernel's body and the helpers only it uses,
@@ -57,8 +58,9 @@ class KernelSpec:
     # kernel_source). PoCL's own loop over a group's work items keeps every private array of the
     # body (a walk's stack) once per work item, addressed by the item's index (a multiply and a
     # reload at each stack access); in one item's loop it is one plain array. Trace kernels set it
-    # (trace_spec): bvh on Sponza 256² incoherent rays 0.91-0.92 of the device time, Sponza
-    # 512² primary rays in packets 0.97, grid 0.98, esvo 1.00 (docs/profiles.md, section 20).
+    # (trace_spec): bvh 0.95-0.97 of the device time (Sponza and BMW, incoherent and primary rays),
+    # the cell walks (grid, esvo, grid-ls) unchanged; the build kernels gained nothing, so they keep
+    # PoCL's group loop (docs/profiles.md, section 20).
     item_loop: bool = False
 
     def with_defines(self, **defines: object) -> "KernelSpec":
