@@ -31,7 +31,8 @@ def main(argv=None) -> None:
     p.add_argument("--leaf-size", type=int, default=0, help="A's leaf size (BVHs; 0: the default)")
     variant = p.add_mutually_exclusive_group(required=True)
     variant.add_argument("--defines", help="B's extra defines: NAME[=VALUE],...")
-    variant.add_argument("--local-size", type=int, help="B's work-group size")
+    variant.add_argument("--local-size", type=int, help="B's work-group size (on PoCL, where a trace's work "
+                         "group runs as one work item's loop, KernelSpec.item_loop: the items per loop)")
     variant.add_argument("--leaf-size-b", type=int, help="B: a second build with this leaf size")
     variant.add_argument("--packet-b", type=int, choices=(8, 16), help="B: this many rays per work item")
     args = p.parse_args(argv)
