@@ -868,10 +868,16 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // The stack entry of slot k_ of `record` (the node's record being visited): its child node, or the
 // leaf (BVH_LEAF_ENTRY of its cell 4 * record + slot).
 #define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? BVH_LEAF_ENTRY(4u * record + (k_), ref_, count_) : (ref_))
-#define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
-    if ((ref_) != BVH_NONE && (tn_) <= (tf_)) {                              \
+// A hit slot pushed at entry distance t_: its data prefetched, then its entry (the child node, or
+// the leaf: BVH_LEAF_ENTRY of its cell cell_) by BVH_PUSH.
+#define BVH_PUSH_SLOT(cell_, ref_, count_, t_) {                             \
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
-        BVH_PUSH(BVH_ENTRY(k_, ref_, count_), tn_) }
+        uint entry_ = (count_) > 0u ? BVH_LEAF_ENTRY(cell_, ref_, count_) : (ref_); \
+        float entry_t_ = (t_);                                               \
+        BVH_PUSH(entry_, entry_t_)                                           \
+    }
+#define BVH_SLOT(k_, tn_, tf_, ref_, count_)                                 \
+    if ((ref_) != BVH_NONE && (tn_) <= (tf_)) BVH_PUSH_SLOT(4u * record + (k_), ref_, count_, tn_)
 
 // A single ray's hit slots onto the stack, nearest on top. BVH_SORT_SLOTS (bvh.py: where the
 // driver runs work items in SIMD lanes, Device.serial_work_items false: llvmpipe, GPUs): the four
@@ -1073,13 +1079,8 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             uint k = LOWEST_BIT(mask);                                                 \
             mask &= mask - 1u;                                                         \
             uint at = 8u * (k >> 2) + (k & 3u);  /* record k / 4, slot k % 4 */        \
-            uint ref = links_[at];                                                     \
-            uint count = links_[at + 4u];                                              \
-            BVH_PREFETCH_ENTRY(ref, count)                                             \
             /* a leaf's cell: 4 * record + slot = 8 * node + k */                      \
-            uint entry = count > 0u ? BVH_LEAF_ENTRY(8u * node + k, ref, count) : ref; \
-            float entry_t = slot_t[k];                                                 \
-            BVH_PUSH(entry, entry_t)                                                   \
+            BVH_PUSH_SLOT(8u * node + k, links_[at], links_[at + 4u], slot_t[k])       \
         }                                                                              \
     }
 #else
@@ -1099,13 +1100,14 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     // naming the limit (trace_finish's loop probe); a restart trail (Laine 2010) would let it resume.
     Trace tr = trace_start(CTX_ARG ray, id);
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
+#ifdef BVH_SLAB8
+    float8 ox8 = (float8)(ray.o.x), oy8 = (float8)(ray.o.y), oz8 = (float8)(ray.o.z);
+    float8 ix8 = (float8)(inv.x), iy8 = (float8)(inv.y), iz8 = (float8)(inv.z), t08 = (float8)(tr.tmin);
+#else
     float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
     float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
     float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
     float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
-#ifdef BVH_SLAB8
-    float8 ox8 = (float8)(ray.o.x), oy8 = (float8)(ray.o.y), oz8 = (float8)(ray.o.z);
-    float8 ix8 = (float8)(inv.x), iy8 = (float8)(inv.y), iz8 = (float8)(inv.z), t08 = (float8)(tr.tmin);
 #endif
     BVH_WALK(BVH_VISIT_RAY, tr.best.t, tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);, BVH_RAY_DONE)
     return trace_finish(CTX_ARG tr, id);
@@ -1226,8 +1228,7 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         intP hit = tn <= tf;                                                                    \
         if (any(hit)) {                                                                         \
             float entry = HREDUCE(min, select((floatP)(INF_F), tn, hit));                       \
-            BVH_PREFETCH_ENTRY(refs.c_, counts.c_)                                              \
-            BVH_PUSH(BVH_ENTRY(k_, refs.c_, counts.c_), entry)                                  \
+            BVH_PUSH_SLOT(4u * record + (k_), refs.c_, counts.c_, entry)                        \
         }                                                                                       \
     }
 #ifdef COUNT_WORK
