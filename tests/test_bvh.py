@@ -346,12 +346,17 @@ def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name):
     assert out["hits"].packet == 8 and out["unexplained"] == [], explain(out)
 
 
-def test_packets_only_for_coherent_rays_on_cpu_devices(device, monkeypatch):
+def test_packets_for_coherent_rays_on_cpu_devices_refills_for_rays_without_locality(device, monkeypatch):
     """backends.packet_width: primary rays go in packets on PoCL (a CPU device, Device.packet_width
     8); incoherent and ambient-occlusion rays, GLSL (no packet kernel),
-    a sliced trace and structures without a packet traversal take one ray per work item. A bad
-    LSBENCH_PACKET is one line naming it."""
+    a sliced trace and structures without a packet traversal take one ray per work item.
+    backends.refill_rays: incoherent rays (no locality) are refilled where work items run in SIMD
+    lanes (llvmpipe), REFILL_RAYS per work item, in the given order; an image's rays, secondary
+    rays from primary hits, PoCL (work items one at a time), a sliced trace and structures without
+    the kernel take one ray per work item. A bad LSBENCH_PACKET or LSBENCH_REFILL is one line
+    naming it."""
     monkeypatch.delenv("LSBENCH_PACKET", raising=False)
+    monkeypatch.delenv("LSBENCH_REFILL", raising=False)
     scene = load_scene("spheres")
     built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
     grid_built = backends.build(device, "grid", scene, BuildParams(resolution=(8, 8, 8)))
@@ -368,12 +373,91 @@ def test_packets_only_for_coherent_rays_on_cpu_devices(device, monkeypatch):
         assert backends.packet_width(built, primary, 1000) == 1  # bounded slices: one ray per item
         assert backends.packet_width(grid_built, primary, None) == 1
         assert backends.trace(built, primary).packet == expect
+        refill = 1 if device.serial_work_items else backends.REFILL_RAYS
+        assert backends.refill_rays(built, incoherent, None) == refill
+        assert backends.refill_rays(built, primary, None) == 1
+        assert backends.refill_rays(built, ao, None) == 1
+        assert backends.refill_rays(built, incoherent, 1000) == 1  # bounded slices
+        assert backends.refill_rays(grid_built, incoherent, None) == 1
+        hits = backends.trace(built, incoherent)
+        assert hits.refill == refill and (refill == 1 or hits.order == "given")
+        monkeypatch.setenv("LSBENCH_REFILL", "0")
+        with pytest.raises(ValueError, match="LSBENCH_REFILL must be auto or a whole number of rays >= 1, got '0'"):
+            backends.trace(built, incoherent)
         monkeypatch.setenv("LSBENCH_PACKET", "4")
         with pytest.raises(ValueError, match="LSBENCH_PACKET must be one of auto, 1, 8, 16, got '4'"):
             backends.trace(built, primary)
     finally:
         built.release()
         grid_built.release()
+
+
+@pytest.mark.parametrize("structure", ["bvh", "bvh-ls"])
+def test_refilled_lanes_find_the_one_ray_hits_and_work(device, monkeypatch, structure):
+    """The refilled kernel (bvh.h BVH_REFILL: a work item's rays one after the other, a lane starting
+    its next ray where its last one ended) against one ray per work item, on both devices: every
+    ray's hit, distance and counted visits and tests identical, for closest and any hit, renderer
+    and adversarial rays, at 3 rays per item (ray counts that leave the last item's rays part
+    taken) and at REFILL_RAYS; then Embree's check."""
+    scene = load_scene("atrium")
+    params = BuildParams(resolution=(1, 1, 1), ls_n=2 if structure == "bvh-ls" else 0)
+    built = backends.build(device, structure, scene, params)
+    lo, hi = scene.bounds
+    light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+    sets = [make_rays("incoherent", scene, 23, 19, None, {}), make_rays("adversarial", scene, 16, 16, None, {}),
+            make_rays("shadow", scene, 21, 17, None, {"light_size": light, "samples": 1}),
+            make_rays("diffuse", scene, 19, 13, None, {})]
+    try:
+        for rays in sets:
+            monkeypatch.setenv("LSBENCH_PACKET", "1")
+            monkeypatch.setenv("LSBENCH_REFILL", "1")
+            one = backends.trace(built, rays, work=True)
+            for per_item in (3, backends.REFILL_RAYS):
+                monkeypatch.setenv("LSBENCH_REFILL", str(per_item))
+                refilled = backends.trace(built, rays, work=True)
+                assert (one.refill, refilled.refill) == (1, per_item), rays.name
+                assert np.array_equal(one.prim_ids, refilled.prim_ids), (rays.name, per_item)
+                assert np.array_equal(one.distances, refilled.distances), (rays.name, per_item)
+                assert np.array_equal(one.work[:, :3], refilled.work[:, :3]), (rays.name, per_item)
+            ref_p, ref_t = embree_closest(scene, rays)
+            _, cl = judge_hits(scene, rays, refilled.prim_ids, refilled.distances, ref_p, ref_t)
+            assert cl.unexplained == 0, (rays.name, cl)
+    finally:
+        built.release()
+
+
+def test_a_refilled_trace_the_driver_cut_runs_again_one_ray_per_item(device, monkeypatch):
+    """llvmpipe's loop budget is one per SIMD group, so a lane's refilled rays share it; a ray it
+    cut reads LOOP_CUT_PRIM (trace.h: cut_hit). The trace then runs the set again one ray per work
+    item, and so do later traces and timings of that set (Built.refill_cut). The cut is planted:
+    the refilled launch's hit ids are read back with one ray marked cut."""
+    monkeypatch.setenv("LSBENCH_PACKET", "1")
+    monkeypatch.setenv("LSBENCH_REFILL", "4")
+    scene = load_scene("spheres")
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    rays = make_rays("incoherent", scene, 16, 16, None, {})
+    read = device.read
+    planted = []
+
+    def read_with_a_cut(buf, dtype, count=None, *args):
+        out = read(buf, dtype, count, *args)
+        if buf.name == "hit_prim" and not planted:
+            out = out.copy()
+            out[7] = backends.LOOP_CUT_PRIM
+            planted.append(True)
+        return out
+
+    try:
+        monkeypatch.setattr(device, "read", read_with_a_cut)
+        hits = backends.trace(built, rays)
+        monkeypatch.setattr(device, "read", read)
+        assert planted and hits.refill == 1 and (rays.content_hash, rays.query) in built.refill_cut
+        assert not np.any(hits.prim_ids == backends.LOOP_CUT_PRIM)
+        assert backends.refill_rays(built, rays, None) == 1
+        monkeypatch.setenv("LSBENCH_REFILL", "1")
+        assert np.array_equal(backends.trace(built, rays).prim_ids, hits.prim_ids)
+    finally:
+        built.release()
 
 
 def test_both_push_orders_find_the_same_hits(device, monkeypatch):

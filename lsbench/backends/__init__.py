@@ -18,7 +18,10 @@ env LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) d
 
 A ray set without locality (consecutive rays starting far apart: the incoherent set) is traced in
 the order of its origins' cells, sorted on the device inside the timed trace (ray_order.py; env
-LSBENCH_RAY_ORDER = auto, given or origin-cells).
+LSBENCH_RAY_ORDER = auto, given or origin-cells). Where work items run in SIMD lanes (llvmpipe,
+GPUs), a structure whose kernel refills lanes (bvh, bvh-ls) traces such a set REFILL_RAYS rays per
+work item instead, a lane starting its next ray where its last one ended (refill_rays below; env
+LSBENCH_REFILL = auto, 1 for one ray per work item, or a number of rays).
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from .device import Device, DeviceError, DeviceLimitError, Timing
 from .structures import CATALOGUE, STRUCTURES, StructureInfo, display_order, structure_info
 from .kernels import SLICE_WORDS
 from .structures.base import (BuildParams, BuildResult, Built, GridGeometry, Hits, for_query, ordered, packeted,
-                              sliced, with_work_counters)
+                              refilled, sliced, with_work_counters)
 
 BACKENDS = ("glsl", "opencl")
 # Hit id of a ray whose traversal loops the driver cut short (cut_hit, shaders/common/trace.h).
@@ -259,22 +262,59 @@ def packet_width(built: Built, rays, budget: int | None) -> int:
     return width
 
 
-def _launch_spec(spec, n: int, uniforms: dict, width: int):
-    """(kernel, work items, uniforms) of a launch over n rays at `width` rays per work item."""
+# Rays per work item of a refilled trace (bvh.h BVH_REFILL): a lane's rays run one after the other,
+# so its SIMD group waits for its longest walk once per REFILL_RAYS rays instead of once per ray.
+# llvmpipe, medians of alternated launches in one process, the same hits and counters
+# (docs/profiles.md, section 21): bvh on Sponza 256² incoherent rays 0.88-0.93 of the one-ray
+# kernel's device time at 16 rays per item (0.86 at 32), BMW 0.73; bvh-ls 0.94-1.00 and 0.79.
+# Shadow, ambient occlusion, diffuse and primary rays, whose lanes end together, took 1.02-1.33 of
+# the time, so only sets without locality are refilled (refill_rays). 16 leaves a lane's rays
+# 4096 loop iterations each of llvmpipe's budget of 65535 per SIMD group before a cut (trace).
+REFILL_RAYS = 16
+
+
+def refill_rays(built: Built, rays, budget: int | None) -> int:
+    """Rays per work item of a refilled trace: REFILL_RAYS where the structure's kernel refills
+    lanes (StructureInfo.refill), the device runs work items in SIMD lanes (Device.serial_work_items
+    false: llvmpipe, GPUs; on PoCL a work item's rays would run one after the other anyway), one
+    launch runs whole rays, and the rays have no locality (an image's tiles and sets whose
+    consecutive rays start together keep lanes that end together: ray_order.choose's test); else 1,
+    also for a set whose refilled trace the driver's loop budget cut (Built.refill_cut). Env
+    LSBENCH_REFILL: auto (default), or the rays per work item (1: none) wherever the kernel refills."""
+    forced = os.environ.get("LSBENCH_REFILL", "").strip().lower() or "auto"
+    if forced != "auto" and not (forced.isdigit() and int(forced) >= 1):
+        raise ValueError(f"LSBENCH_REFILL must be auto or a whole number of rays >= 1, got {forced!r}")
+    if budget is not None or not structure_info(built.structure).refill or rays.count < 2:
+        return 1
+    if (rays.content_hash, rays.query) in built.refill_cut:
+        return 1
+    if forced != "auto":
+        return int(forced)
+    if built.device.serial_work_items or launch_order(rays) is not None:
+        return 1
+    return REFILL_RAYS if ray_order.origin_locality(rays, _bounds(built)) < ray_order.ORDER_MAX_LOCALITY else 1
+
+
+def _launch_spec(spec, n: int, uniforms: dict, width: int, refill: int = 1):
+    """(kernel, work items, uniforms) of a launch over n rays at `width` rays per work item in
+    packets, or `refill` one after the other per lane."""
+    if refill > 1:
+        return refilled(spec, refill), -(-n // refill), dict(uniforms, packet_rays=n)
     if width <= 1:
         return spec, n, uniforms
     return packeted(spec, width), -(-n // width), dict(uniforms, packet_rays=n)
 
 
-def trace_order(built: Built, rays, width: int, budget: int | None) -> tuple[str, dict | None]:
+def trace_order(built: Built, rays, width: int, budget: int | None, refill: int = 1) -> tuple[str, dict | None]:
     """The order the rays of this trace go to the device in, and the probe that chose it: "given"
     (an image's tiles, or the set's own order) or "origin-cells" (sorted on the device by their
     origins' cells over the structure's bounds), as ray_order.choose says; where it says
     "measure", the faster of the two in whole timed traces (the sort included): two rounds of one
     warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per
     structure and ray set (Built.ray_orders), so the verified, counted and timed traces run the
-    same order."""
-    choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, width)
+    same order. A refilled trace (refill > 1) runs in the given order: its lanes take rays at
+    n_items apart, with no use for neighbours (llvmpipe chose the given order in every probe)."""
+    choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, max(width, refill))
     if choice == "measure" and 4 * max(ray_order.ORDER_CELLS, rays.count) > built.device.max_buffer_bytes:
         choice = "given"  # the sort's buffers would not fit the driver's per-buffer limit
     if choice != "measure":
@@ -394,23 +434,28 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     spec = with_work_counters(spec, d) if work else spec
     budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
-    ordered, probe = trace_order(built, rays, width, budget)
+    refill = refill_rays(built, rays, budget) if width == 1 else 1
+    ordered, probe = trace_order(built, rays, width, budget, refill)
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, work, ordered)
     try:
         if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
-        slices = _launch_trace(built, spec, rays.count, bufs, budget, width, before, _dispatch)
+        slices = _launch_trace(built, spec, rays.count, bufs, budget, width, before, _dispatch, refill)
         d.finish()
         order = launch_order(rays)  # an image's tiles; a sorted order stores its hits in place
         hits = Hits(_in_ray_order(d.read(bufs["hit_prim"], np.int32, rays.count), order),
                     _in_ray_order(d.read(bufs["hit_t"], np.float32, rays.count), order), slices=slices,
-                    slice_budget=budget, packet=width, order=ordered, order_probe=probe)
+                    slice_budget=budget, packet=width, refill=refill, order=ordered, order_probe=probe)
         if work:
             hits.work = _in_ray_order(d.read(bufs["work"], np.uint32, 4 * rays.count).reshape(-1, 4), order)
     finally:
         _release(d, bufs, _TRACE_BUFFERS)
     cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
+    if cut and refill > 1:
+        # a lane's rays share the SIMD group's loop budget: one ray per work item from now on
+        built.refill_cut.add((rays.content_hash, rays.query))
+        return trace(built, rays, work, budget)
     if cut:
         raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
                                  "candidates than that (a finer resolution or a Line Space cuts them)")
@@ -426,25 +471,34 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     launches are in it too."""
     budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
-    return _timed_trace(built, rays, width, budget, trace_order(built, rays, width, budget)[0], warmup, repeats,
-                        between)
+    refill = refill_rays(built, rays, budget) if width == 1 else 1
+    timing = _timed_trace(built, rays, width, budget, trace_order(built, rays, width, budget, refill)[0], warmup,
+                          repeats, between, refill)
+    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # cut: timed again one ray per item
+        return time_trace(built, rays, warmup, repeats, between, budget)
+    return timing
 
 
 def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: str, warmup: int, repeats: int,
-                 between) -> Timing:
+                 between, refill: int = 1) -> Timing:
+    """Device time of whole traces (time_trace). A refilled trace whose rays the driver's loop
+    budget cut (LOOP_CUT_PRIM in the hits of its last launch) marks its ray set in Built.refill_cut."""
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, False, ordered)
     try:
         if budget is None and not before:
-            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width)
-            return d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
+            kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width, refill)
+            timing = d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
+            if refill > 1 and np.any(d.read(bufs["hit_prim"], np.int32, rays.count) == LOOP_CUT_PRIM):
+                built.refill_cut.add((rays.content_hash, rays.query))
+            return timing
         if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
 
         def whole_trace(launch):
-            _launch_trace(built, spec, rays.count, bufs, budget, width, before, launch)
+            _launch_trace(built, spec, rays.count, bufs, budget, width, before, launch, refill)
 
         for _ in range(max(warmup, 1)):
             whole_trace(_dispatch)
@@ -469,7 +523,7 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
 
 
 def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, width: int, sort_steps: list,
-                  launch) -> int:
+                  launch, refill: int = 1) -> int:
     """One whole trace through `launch` (_dispatch, or a timed one): the sort's launches, then the
     trace kernel in one launch (ORDERED_RAYS after a sort) or in slices (the first slice's ray list
     is the sorted order, read back after the sort); returns the trace's launches."""
@@ -477,7 +531,8 @@ def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, wi
     for step, items, uniforms in sort_steps:
         launch(d, step, items, bufs, uniforms)
     if budget is None:
-        kernel, items, uniforms = _launch_spec(ordered(spec) if sort_steps else spec, n, built.uniforms, width)
+        kernel, items, uniforms = _launch_spec(ordered(spec) if sort_steps else spec, n, built.uniforms, width,
+                                               refill)
         launch(d, kernel, items, bufs, uniforms)
         return 1
     first = (lambda: d.read(bufs["order_ids"], np.uint32, n)) if sort_steps else None

@@ -80,6 +80,7 @@ class Record:
     trace_slices: int | None = None
     slice_budget: int | None = None
     trace_packet: int | None = None
+    trace_refill: int | None = None
     trace_order: str | None = None
     trace_order_probe: dict | None = None
     rays_per_second: float | None = None

@@ -171,7 +171,7 @@ def execute(case: Case, settings: RunSettings, env: dict | None = None, dump_hit
             raise DeviceLimitError(over.reason(budget) + again)
         hits = backends.trace(built, rays)
         rec.update(trace_slices=hits.slices, slice_budget=hits.slice_budget, trace_packet=hits.packet,
-                   trace_order=hits.order, trace_order_probe=hits.order_probe)
+                   trace_refill=hits.refill, trace_order=hits.order, trace_order_probe=hits.order_probe)
         # verify's counts and |dt|, and the float64 class of every disagreement (the gate's input)
         rec.accuracy, rec.classification = judge_hits(scene, rays, hits.prim_ids, hits.distances,
                                                       ref_prim, ref_t, rel_tol=settings.rel_tol)

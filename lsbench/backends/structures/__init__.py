@@ -23,6 +23,7 @@ class StructureInfo:
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
     leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none
     packets: bool = False  # its trace kernel has a packet traversal (Device.packet_width; bvh.h BVH_PACKET)
+    refill: bool = False  # its trace kernel can refill a lane whose ray ended (backends.refill_rays; bvh.h BVH_REFILL)
 
 
 CATALOGUE: tuple[StructureInfo, ...] = (
@@ -33,9 +34,9 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
     StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, treelet restructuring (Fig. 4c baseline)",
-                  bvh.DEFAULT_LEAF_SIZE, packets=True),
+                  bvh.DEFAULT_LEAF_SIZE, packets=True, refill=True),
     StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
-                  bvh_ls_module.DEFAULT_LEAF_SIZE),
+                  bvh_ls_module.DEFAULT_LEAF_SIZE, refill=True),
 )
 STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
 

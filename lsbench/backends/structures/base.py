@@ -127,6 +127,9 @@ class Built:
     # The ray order measured for each ray set traced on this structure (backends.trace_order):
     # (rays' hash, query, slice budget) -> (order, {order: probe seconds})
     ray_orders: dict = field(default_factory=dict)
+    # The ray sets (rays' hash, query) whose refilled trace (backends.refill_rays) the driver's loop
+    # budget cut: they are traced one ray per work item from then on.
+    refill_cut: set = field(default_factory=set)
 
     def memory(self) -> dict[str, dict[str, int]]:
         return {name: {"allocated": b.nbytes, "used": b.used} for name, b in self.buffers.items()}
@@ -148,6 +151,7 @@ class Hits:
     slices: int = 1  # launches the trace took (more than 1: traversal in bounded slices)
     slice_budget: int | None = None  # loop iterations per ray and launch it started with (None: unbounded)
     packet: int = 1  # rays per work item (backends.packet_width: more than 1, the packet traversal)
+    refill: int = 1  # rays per work item, one after the other in a lane (backends.refill_rays)
     order: str = "given"  # the order the rays were traced in (backends.trace_order)
     order_probe: dict | None = None  # where the order was measured: device seconds of each order
 
@@ -183,6 +187,15 @@ def packeted(spec: KernelSpec, width: int) -> KernelSpec:
     g * width .. g * width + width - 1; shaders/common/bvh.h)."""
     return dataclasses.replace(spec, uniforms=spec.uniforms + (PACKET_UNIFORM,),
                                defines=spec.defines + (("BVH_PACKET", str(int(width))),))
+
+
+def refilled(spec: KernelSpec, rays: int) -> KernelSpec:
+    """The variant of a single-ray traversal kernel whose work item g traces up to `rays` rays,
+    g, g + n_items, ..., each lane starting its next ray where the last one ended (the same
+    KERNEL_<name>, the same walk per ray; BVH_REFILL, shaders/common/bvh.h); packet_rays the
+    ray count."""
+    return dataclasses.replace(spec, uniforms=spec.uniforms + (PACKET_UNIFORM,),
+                               defines=spec.defines + (("BVH_REFILL", str(int(rays))),))
 
 
 def ordered(spec: KernelSpec) -> KernelSpec:

@@ -66,7 +66,10 @@ test; incoherent rays stay single (packets were 1.5x slower there): 0.45x on Spo
 BMW. Where the driver runs work items in SIMD lanes (llvmpipe, GPUs) a node's hit slots are sorted
 in registers before they are pushed (traversal below, bvh.h BVH_SORT_SLOTS): llvmpipe's stack
 writes are per-lane scatters; Sponza 256² 0.54 (primary) and 0.67 (incoherent) of the device time,
-bvh glsl 0.36 -> 0.61-0.64 Mrays/s on primary rays (docs/profiles.md, section 10).
+bvh glsl 0.36 -> 0.61-0.64 Mrays/s on primary rays (docs/profiles.md, section 10). There rays
+without locality go 16 per work item, a lane starting its next ray where its last one ended (bvh.h
+BVH_REFILL, backends.refill_rays): Sponza 256² incoherent 0.86-0.93 of the device time, BMW 0.73
+(docs/profiles.md, section 21).
 
 Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
 (32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,

@@ -929,14 +929,17 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     BVH_SLOT(3u, tn.w, tf.w, refs.w, counts.w)
 #endif
 
-// Stack-based walk, nearest first, written once for the single-ray and the packet traversal, the
-// work injected (as madmann91/bvh's traverse_top_down takes its leaf and node callbacks):
+// Stack-based walk, nearest first, written once for the single-ray, the refilled and the packet
+// traversal, the work injected (as madmann91/bvh's traverse_top_down takes its leaf and node
+// callbacks):
 //   VISIT  a node visit (one `iterations` step): tests the 4 slots' boxes of `node` against
 //          [tmin, the closest hit so far] and pushes the hit ones, nodes and leaves alike, with
 //          BVH_PUSH in order of entry distance;
 //   BOUND  the entry distance past which a popped entry is dropped (the closest hit by then);
 //   LEAF   tests the leaf of stack entry `e` (trace.h's candidate loop);
-//   DONE   after a leaf: whether the walk ends (QUERY_ANY: a hit).
+//   DONE   after a leaf: whether the walk ends (QUERY_ANY: a hit);
+//   END    at the walk's end: `done = 1;`, or (BVH_REFILL) the next ray's walk set up from the
+//          root (sp = 0, node = 0) in the same loop.
 // Then entries are popped, nearest first; the nearest hit slot, when a node, is visited next
 // without the pop loop's checks (its entry lies before the closest hit: tn <= tf <= best; PoCL,
 // Sponza 512² primary: 0.949 and 0.977 of the device time, medians of 20 alternated pairs of
@@ -952,7 +955,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         node = stack[sp];                                                              \
         continue;                                                                      \
     }
-#define BVH_WALK(VISIT, BOUND, LEAF, DONE)                                             \
+#define BVH_WALK(VISIT, BOUND, LEAF, DONE, END)                                        \
     uint stack[BVH_STACK];                                                             \
     float stack_t[BVH_STACK];                                                          \
     int sp = 0;                                                                        \
@@ -970,7 +973,7 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             LEAF                                                                       \
             if (DONE) break;                                                           \
         }                                                                              \
-        if (node == BVH_NONE) done = 1;                                                \
+        if (node == BVH_NONE) { END }                                                  \
     }
 
 #ifdef BVH_WHILE_WHILE
@@ -980,12 +983,13 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 // lane runs it (llvmpipe), the one loop paid a leaf's Line Space lookup and a candidate test once
 // per node visit: bvh-ls sets it there (bvh_ls.py; bvh's leaves of 2 gained nothing).
 #undef BVH_WALK
-#define BVH_WALK(VISIT, BOUND, LEAF, DONE)                                             \
+#define BVH_WALK(VISIT, BOUND, LEAF, DONE, END)                                        \
     uint stack[BVH_STACK];                                                             \
     float stack_t[BVH_STACK];                                                          \
     int sp = 0;                                                                        \
     uint node = 0u;                                                                    \
-    for (;;) {                                                                         \
+    int done = 0;                                                                      \
+    while (done == 0) {                                                                \
         uint e = BVH_NONE;                                                             \
         for (;;) {                                                                     \
             if (node != BVH_NONE) {                                                    \
@@ -1001,9 +1005,11 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
             if (e == BVH_NONE || (e & BVH_LEAF) != 0u) break;                          \
             node = e;                                                                  \
         }                                                                              \
-        if (e == BVH_NONE) break;                                                      \
-        LEAF                                                                           \
-        if (DONE) break;                                                               \
+        if (e != BVH_NONE) {                                                           \
+            LEAF                                                                       \
+            if (!(DONE)) continue;                                                     \
+        }                                                                              \
+        END                                                                            \
     }
 #endif
 
@@ -1093,23 +1099,35 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
 #define BVH_RAY_DONE (0 != 0)
 #endif
 
+// The ray's values that a node visit (BVH_VISIT_RAY) reads, declared, then set for ray r_ and its
+// walk state tr: origin, 1 / direction (bvh_rcp) and tmin broadcast to the slots' lanes.
+#ifdef BVH_SLAB8
+#define BVH_RAY_VALUES float8 ox8, oy8, oz8, ix8, iy8, iz8, t08;
+#define BVH_SET_RAY(r_) {                                                               \
+        ox8 = (float8)((r_).o.x); oy8 = (float8)((r_).o.y); oz8 = (float8)((r_).o.z);  \
+        ix8 = (float8)(bvh_rcp((r_).d.x)); iy8 = (float8)(bvh_rcp((r_).d.y));          \
+        iz8 = (float8)(bvh_rcp((r_).d.z)); t08 = (float8)(tr.tmin);                    \
+    }
+#else
+#define BVH_RAY_VALUES float3 inv; float4 ox; float4 oy; float4 oz; float4 t0;
+#define BVH_SET_RAY(r_) {                                                               \
+        inv = make_float3(bvh_rcp((r_).d.x), bvh_rcp((r_).d.y), bvh_rcp((r_).d.z));    \
+        ox = make_float4((r_).o.x, (r_).o.x, (r_).o.x, (r_).o.x);                      \
+        oy = make_float4((r_).o.y, (r_).o.y, (r_).o.y, (r_).o.y);                      \
+        oz = make_float4((r_).o.z, (r_).o.z, (r_).o.z, (r_).o.z);                      \
+        t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);                          \
+    }
+#endif
+
 INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
     // Bounded slices (trace.h, SLICED) need a walk that saves its state in 8 words; this walk's
     // state is its stack, so it does not suspend: the host traces its rays whole in one launch on
     // every device (BuildResult.suspends). A ray whose loops llvmpipe still cuts fails the case
     // naming the limit (trace_finish's loop probe); a restart trail (Laine 2010) would let it resume.
     Trace tr = trace_start(CTX_ARG ray, id);
-    float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
-#ifdef BVH_SLAB8
-    float8 ox8 = (float8)(ray.o.x), oy8 = (float8)(ray.o.y), oz8 = (float8)(ray.o.z);
-    float8 ix8 = (float8)(inv.x), iy8 = (float8)(inv.y), iz8 = (float8)(inv.z), t08 = (float8)(tr.tmin);
-#else
-    float4 ox = make_float4(ray.o.x, ray.o.x, ray.o.x, ray.o.x);
-    float4 oy = make_float4(ray.o.y, ray.o.y, ray.o.y, ray.o.y);
-    float4 oz = make_float4(ray.o.z, ray.o.z, ray.o.z, ray.o.z);
-    float4 t0 = make_float4(tr.tmin, tr.tmin, tr.tmin, tr.tmin);
-#endif
-    BVH_WALK(BVH_VISIT_RAY, tr.best.t, tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);, BVH_RAY_DONE)
+    BVH_RAY_VALUES
+    BVH_SET_RAY(ray)
+    BVH_WALK(BVH_VISIT_RAY, tr.best.t, tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);, BVH_RAY_DONE, done = 1;)
     return trace_finish(CTX_ARG tr, id);
 }
 
@@ -1292,8 +1310,48 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     intP kx = VLOADP(0, kx_), ky = VLOADP(0, ky_), kz = VLOADP(0, kz_);
     pk.kx0 = kx == 0; pk.kx1 = kx == 1; pk.ky0 = ky == 0; pk.ky1 = ky == 1; pk.kz0 = kz == 0; pk.kz1 = kz == 1;
     BVH_WALK(BVH_VISIT_PACKET, HREDUCE(max, VLOADP(0, prune)), bvh_packet_leaf(CTX_ARG &pk, tr, prune, e);,
-             BVH_PACKET_DONE)
+             BVH_PACKET_DONE, done = 1;)
     for (int l = 0; l < pk.lanes; ++l) store_hit(CTX_ARG first + U32(l), trace_finish(CTX_ARG tr[l], first + U32(l)));
+}
+#elif defined(BVH_REFILL)
+// ---- Refilled lanes (BVH_REFILL rays per work item) -----------------------------------------
+// Where work items run in SIMD lanes (llvmpipe, GPUs) a group runs until its longest walk ends,
+// the lanes whose rays ended idle under the mask: rays without locality (the incoherent set) kept
+// 46 % of llvmpipe's lanes busy (Sponza 256², bvh, node visits and tests of 8 consecutive rays,
+// mean over max). Here a lane whose ray ends stores its hit and starts the next of its rays in the
+// same loop (Aila & Laine 2009, "Understanding the efficiency of ray traversal on GPUs": replacing
+// terminated rays), so a group waits for its longest walk once per BVH_REFILL rays. Work item g
+// traces the rays at g, g + n_items, ... (at most BVH_REFILL of them, below packet_rays, the
+// count): the host launches ceil(count / BVH_REFILL) items (backends.refill_rays, for ray sets
+// without locality; coherent ones, whose lanes finish together, lost 2-33 % to the refill's setup:
+// docs/profiles.md, section 21).
+// Each ray's walk, hits and counters are those of trace_bvh. llvmpipe's loop budget (65535 per
+// SIMD group) is shared by a lane's rays: a ray it cuts is stored as LOOP_CUT_PRIM, as every
+// ray is, and the host traces the set again one ray per item (backends.trace).
+INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
+    uint slot = gid;
+    uint taken = 1u;
+    uint id = trace_ray(CTX_ARG slot);
+    Ray ray = load_ray(CTX_ARG id);
+    Trace tr = trace_start(CTX_ARG ray, id);
+    BVH_RAY_VALUES
+    BVH_SET_RAY(ray)
+#define BVH_REFILL_NEXT                                                                   \
+    store_hit(CTX_ARG id, trace_finish(CTX_ARG tr, id));                                  \
+    slot += V(n_items);                                                                   \
+    if (taken == U32(BVH_REFILL) || slot >= V(packet_rays)) {                             \
+        done = 1;                                                                         \
+    } else {                                                                              \
+        taken += 1u;                                                                      \
+        id = trace_ray(CTX_ARG slot);                                                     \
+        ray = load_ray(CTX_ARG id);                                                       \
+        tr = trace_start(CTX_ARG ray, id);                                                \
+        BVH_SET_RAY(ray)                                                                  \
+        sp = 0;                                                                           \
+        node = 0u;                                                                        \
+    }
+    BVH_WALK(BVH_VISIT_RAY, tr.best.t, tr = bvh_test_leaf(CTX_ARG tr, ray, e & ~BVH_LEAF);, BVH_RAY_DONE,
+             BVH_REFILL_NEXT)
 }
 #else
 INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
