@@ -12,7 +12,7 @@ from lsbench import backends
 from lsbench.backends import BuildParams
 from lsbench.backends.structures import bvh
 from lsbench.inputs.rays import make_rays, primary_rays
-from lsbench.inputs.scene import Camera
+from lsbench.inputs.scene import Camera, Scene
 from lsbench.inputs.scenes import load_scene
 from lsbench.oracle.classifier import judge_hits
 from lsbench.oracle.embree import embree_closest
@@ -458,6 +458,37 @@ def test_a_refilled_trace_the_driver_cut_runs_again_one_ray_per_item(device, mon
         assert np.array_equal(backends.trace(built, rays).prim_ids, hits.prim_ids)
     finally:
         built.release()
+
+
+def test_llvmpipes_loop_budget_cuts_refilled_lanes_and_the_set_runs_one_ray_per_item(device, monkeypatch):
+    """A real cut: 8000 tiny triangles 1e5 units from the origin, whose float32 boxes overlap so
+    that an incoherent ray visits ~300 nodes and tests ~1100 triangles (up to 2000). 64 such rays
+    per lane pass llvmpipe's 65535 loop iterations per SIMD group; the lanes' rays after the cut
+    are never started, and read as cut (the hit ids start as LOOP_CUT_PRIM). The trace, and a
+    timing taken first on a fresh build, then run the set one ray per work item (Built.refill_cut),
+    with the hits of one ray per item. PoCL has no budget: there the 64 per item run."""
+    rng = np.random.default_rng(3)
+    tris = 1e5 + rng.uniform(0, 1e-2, (8000, 1, 3)) + rng.normal(0, 2e-4, (8000, 3, 3))
+    v = tris.reshape(-1, 3).astype(np.float32)
+    scene = Scene("far-dense", v, np.arange(len(v), dtype=np.uint32).reshape(-1, 3), "test:far-dense")
+    rays = make_rays("incoherent", scene, 16, 16, None, {})
+    key = (rays.content_hash, rays.query)
+    monkeypatch.setenv("LSBENCH_PACKET", "1")
+    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    timed = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    try:
+        monkeypatch.setenv("LSBENCH_REFILL", "1")
+        one = backends.trace(built, rays)
+        monkeypatch.setenv("LSBENCH_REFILL", "64")
+        hits = backends.trace(built, rays)
+        assert np.array_equal(hits.prim_ids, one.prim_ids) and np.array_equal(hits.distances, one.distances)
+        cut = device.loop_budget is not None  # llvmpipe
+        assert hits.refill == (1 if cut else 64) and (key in built.refill_cut) == cut
+        backends.time_trace(timed, rays, 0, 1)
+        assert (key in timed.refill_cut) == cut
+    finally:
+        built.release()
+        timed.release()
 
 
 def test_both_push_orders_find_the_same_hits(device, monkeypatch):

@@ -336,12 +336,18 @@ def _bounds(built: Built):
     return lo, lo + np.asarray(g.voxel_size, np.float64) * np.asarray(g.resolution, np.float64)
 
 
-def _trace_buffers(built: Built, rays, work: bool, order: str = "given"):
+def _trace_buffers(built: Built, rays, work: bool, order: str = "given", refill: int = 1):
+    """The trace's buffers. A refilled trace's hit ids start as LOOP_CUT_PRIM: once llvmpipe's loop
+    budget is spent, every loop runs its body once more and ends, so a lane's rays not yet started
+    are never stored, and must read as cut (trace: the set is traced again one ray per item)."""
     d = built.device
     bufs = dict(built.scene_buffers)
     bufs.update(built.buffers)
     bufs["rays"] = d.upload("rays", _ray_buffer(rays, launch_order(rays)))
-    bufs["hit_prim"] = d.alloc("hit_prim", 4 * rays.count, zero=False)
+    if refill > 1:
+        bufs["hit_prim"] = d.upload("hit_prim", np.full(rays.count, LOOP_CUT_PRIM, np.int32))
+    else:
+        bufs["hit_prim"] = d.alloc("hit_prim", 4 * rays.count, zero=False)
     bufs["hit_t"] = d.alloc("hit_t", 4 * rays.count, zero=False)
     if work:
         bufs["work"] = d.alloc("work", 16 * rays.count)
@@ -437,7 +443,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     ordered, probe = trace_order(built, rays, width, budget, refill)
     before = _sort_steps(built, rays, ordered)
-    bufs = _trace_buffers(built, rays, work, ordered)
+    bufs = _trace_buffers(built, rays, work, ordered, refill)
     try:
         if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
@@ -486,7 +492,7 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     before = _sort_steps(built, rays, ordered)
-    bufs = _trace_buffers(built, rays, False, ordered)
+    bufs = _trace_buffers(built, rays, False, ordered, refill)
     try:
         if budget is None and not before:
             kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width, refill)

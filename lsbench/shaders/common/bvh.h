@@ -1326,8 +1326,10 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
 // without locality; coherent ones, whose lanes finish together, lost 2-33 % to the refill's setup:
 // docs/profiles.md, section 21).
 // Each ray's walk, hits and counters are those of trace_bvh. llvmpipe's loop budget (65535 per
-// SIMD group) is shared by a lane's rays: a ray it cuts is stored as LOOP_CUT_PRIM, as every
-// ray is, and the host traces the set again one ray per item (backends.trace).
+// SIMD group) is shared by a lane's rays: the ray it cuts is stored as LOOP_CUT_PRIM (trace.h:
+// cut_hit), and the lane's rays after it are never started (every loop then runs its body once and
+// ends), so the host fills the hit ids with LOOP_CUT_PRIM before the launch; a cut ray traces the
+// set again one ray per work item (backends.trace).
 INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     uint slot = gid;
     uint taken = 1u;
