@@ -312,19 +312,18 @@ def trace_order(built: Built, rays, width: int, budget: int | None, refill: int 
     "measure", the faster of the two in whole timed traces (the sort included): two rounds of one
     warm-up and one timed trace of each order, alternated, the minimum kept. Measured once per
     structure and ray set (Built.ray_orders), so the verified, counted and timed traces run the
-    same order. A refilled trace (refill > 1) runs in the given order: its lanes take rays at
-    n_items apart, with no use for neighbours (llvmpipe chose the given order in every probe)."""
-    choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, max(width, refill))
+    same order; a refilled trace (refill_rays) is measured with its refilled kernel."""
+    choice = ray_order.choose(rays, _bounds(built), launch_order(rays) is not None, width)
     if choice == "measure" and 4 * max(ray_order.ORDER_CELLS, rays.count) > built.device.max_buffer_bytes:
         choice = "given"  # the sort's buffers would not fit the driver's per-buffer limit
     if choice != "measure":
         return choice, None
-    key = (rays.content_hash, rays.query, budget)
+    key = (rays.content_hash, rays.query, budget, refill)
     if key not in built.ray_orders:
         probe = {order: [] for order in ("given", "origin-cells")}
         for _ in range(2):
             for order, seconds in probe.items():
-                seconds.append(min(_timed_trace(built, rays, width, budget, order, 1, 1, None).seconds))
+                seconds.append(min(_timed_trace(built, rays, width, budget, order, 1, 1, None, refill).seconds))
         best = {order: min(seconds) for order, seconds in probe.items()}
         built.ray_orders[key] = (min(best, key=best.get), best)
     return built.ray_orders[key]
@@ -442,6 +441,8 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     ordered, probe = trace_order(built, rays, width, budget, refill)
+    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # the order's probe saw a cut
+        return trace(built, rays, work, budget)
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, work, ordered, refill)
     try:
@@ -478,9 +479,10 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
-    timing = _timed_trace(built, rays, width, budget, trace_order(built, rays, width, budget, refill)[0], warmup,
-                          repeats, between, refill)
-    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # cut: timed again one ray per item
+    order = trace_order(built, rays, width, budget, refill)[0]
+    if refill == 1 or (rays.content_hash, rays.query) not in built.refill_cut:
+        timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
+    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # cut: timed one ray per item
         return time_trace(built, rays, warmup, repeats, between, budget)
     return timing
 

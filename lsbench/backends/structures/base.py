@@ -125,7 +125,7 @@ class Built:
     stats: dict = field(default_factory=dict)
     suspends: bool = True  # BuildResult.suspends
     # The ray order measured for each ray set traced on this structure (backends.trace_order):
-    # (rays' hash, query, slice budget) -> (order, {order: probe seconds})
+    # (rays' hash, query, slice budget, rays per work item refilled) -> (order, {order: probe seconds})
     ray_orders: dict = field(default_factory=dict)
     # The ray sets (rays' hash, query) whose refilled trace (backends.refill_rays) the driver's loop
     # budget cut: they are traced one ray per work item from then on.
