@@ -480,9 +480,11 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     order = trace_order(built, rays, width, budget, refill)[0]
-    if refill == 1 or (rays.content_hash, rays.query) not in built.refill_cut:
-        timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
-    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # cut: timed one ray per item
+    cut = (rays.content_hash, rays.query)
+    if refill > 1 and cut in built.refill_cut:  # the order's probe saw the loop budget cut it
+        return time_trace(built, rays, warmup, repeats, between, budget)
+    timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
+    if refill > 1 and cut in built.refill_cut:  # the timed launches saw it: one ray per item
         return time_trace(built, rays, warmup, repeats, between, budget)
     return timing
 
@@ -499,8 +501,7 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
         if budget is None and not before:
             kernel, items, uniforms = _launch_spec(spec, rays.count, built.uniforms, width, refill)
             timing = d.time_dispatch(kernel, items, bufs, uniforms, warmup, repeats, between)
-            if refill > 1 and np.any(d.read(bufs["hit_prim"], np.int32, rays.count) == LOOP_CUT_PRIM):
-                built.refill_cut.add((rays.content_hash, rays.query))
+            _note_refill_cut(built, rays, bufs, refill)
             return timing
         if budget is not None:
             bufs["slice_state"] = d.alloc("slice_state", 4 * (SLICE_WORDS + 1) * rays.count)
@@ -525,9 +526,17 @@ def _timed_trace(built: Built, rays, width: int, budget: int | None, ordered: st
             if between is not None:
                 between()
         parts = ([] if budget is None else ["summed over the slices"]) + (["with the rays' sort"] if before else [])
+        _note_refill_cut(built, rays, bufs, refill)
         return Timing(seconds, " + ".join(sorted(clocks)) + ", " + ", ".join(parts))
     finally:
         _release(d, bufs, _TRACE_BUFFERS)
+
+
+def _note_refill_cut(built: Built, rays, bufs: dict, refill: int) -> None:
+    """After a refilled timed trace: a ray the loop budget cut (or never started: the hit ids start
+    as LOOP_CUT_PRIM) marks the set in Built.refill_cut, so it is timed again one ray per item."""
+    if refill > 1 and np.any(built.device.read(bufs["hit_prim"], np.int32, rays.count) == LOOP_CUT_PRIM):
+        built.refill_cut.add((rays.content_hash, rays.query))
 
 
 def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, width: int, sort_steps: list,
