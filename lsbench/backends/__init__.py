@@ -286,13 +286,18 @@ def refill_rays(built: Built, rays, budget: int | None) -> int:
         raise ValueError(f"LSBENCH_REFILL must be auto or a whole number of rays >= 1, got {forced!r}")
     if budget is not None or not structure_info(built.structure).refill or rays.count < 2:
         return 1
-    if (rays.content_hash, rays.query) in built.refill_cut:
+    if _refill_key(rays) in built.refill_cut:
         return 1
     if forced != "auto":
         return int(forced)
     if built.device.serial_work_items or launch_order(rays) is not None:
         return 1
-    return REFILL_RAYS if ray_order.origin_locality(rays, _bounds(built)) < ray_order.ORDER_MAX_LOCALITY else 1
+    return REFILL_RAYS if ray_order.without_locality(rays, _bounds(built)) else 1
+
+
+def _refill_key(rays) -> tuple:
+    """A ray set's key in Built.refill_cut: its content and query."""
+    return (rays.content_hash, rays.query)
 
 
 def _launch_spec(spec, n: int, uniforms: dict, width: int, refill: int = 1):
@@ -441,7 +446,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     ordered, probe = trace_order(built, rays, width, budget, refill)
-    if refill > 1 and (rays.content_hash, rays.query) in built.refill_cut:  # the order's probe saw a cut
+    if refill > 1 and _refill_key(rays) in built.refill_cut:  # the order's probe saw a cut
         return trace(built, rays, work, budget)
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, work, ordered, refill)
@@ -461,7 +466,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     cut = int(np.count_nonzero(hits.prim_ids == LOOP_CUT_PRIM))
     if cut and refill > 1:
         # a lane's rays share the SIMD group's loop budget: one ray per work item from now on
-        built.refill_cut.add((rays.content_hash, rays.query))
+        built.refill_cut.add(_refill_key(rays))
         return trace(built, rays, work, budget)
     if cut:
         raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
@@ -480,7 +485,7 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     order = trace_order(built, rays, width, budget, refill)[0]
-    cut = (rays.content_hash, rays.query)
+    cut = _refill_key(rays)
     if refill > 1 and cut in built.refill_cut:  # the order's probe saw the loop budget cut it
         return time_trace(built, rays, warmup, repeats, between, budget)
     timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
@@ -536,7 +541,7 @@ def _note_refill_cut(built: Built, rays, bufs: dict, refill: int) -> None:
     """After a refilled timed trace: a ray the loop budget cut (or never started: the hit ids start
     as LOOP_CUT_PRIM) marks the set in Built.refill_cut, so it is timed again one ray per item."""
     if refill > 1 and np.any(built.device.read(bufs["hit_prim"], np.int32, rays.count) == LOOP_CUT_PRIM):
-        built.refill_cut.add((rays.content_hash, rays.query))
+        built.refill_cut.add(_refill_key(rays))
 
 
 def _launch_trace(built: Built, spec, n: int, bufs: dict, budget: int | None, width: int, sort_steps: list,

@@ -865,14 +865,14 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
         if ((count_) == 0u) BVH_PREFETCH_NODE(ref_)                           \
         else BVH_PREFETCH_LEAF(ref_, count_)                                  \
     }
-// The stack entry of slot k_ of `record` (the node's record being visited): its child node, or the
-// leaf (BVH_LEAF_ENTRY of its cell 4 * record + slot).
-#define BVH_ENTRY(k_, ref_, count_) ((count_) > 0u ? BVH_LEAF_ENTRY(4u * record + (k_), ref_, count_) : (ref_))
-// A hit slot pushed at entry distance t_: its data prefetched, then its entry (the child node, or
-// the leaf: BVH_LEAF_ENTRY of its cell cell_) by BVH_PUSH.
+// The stack entry of the slot in cell cell_ (4 * record + slot): its child node, or the leaf
+// (BVH_LEAF_ENTRY); BVH_ENTRY: of slot k_ of `record` (the node's record being visited).
+#define BVH_CELL_ENTRY(cell_, ref_, count_) ((count_) > 0u ? BVH_LEAF_ENTRY(cell_, ref_, count_) : (ref_))
+#define BVH_ENTRY(k_, ref_, count_) BVH_CELL_ENTRY(4u * record + (k_), ref_, count_)
+// A hit slot pushed at entry distance t_: its data prefetched, then its entry by BVH_PUSH.
 #define BVH_PUSH_SLOT(cell_, ref_, count_, t_) {                             \
         BVH_PREFETCH_ENTRY(ref_, count_)                                     \
-        uint entry_ = (count_) > 0u ? BVH_LEAF_ENTRY(cell_, ref_, count_) : (ref_); \
+        uint entry_ = BVH_CELL_ENTRY(cell_, ref_, count_);                   \
         float entry_t_ = (t_);                                               \
         BVH_PUSH(entry_, entry_t_)                                           \
     }
@@ -1333,11 +1333,18 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
 INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     uint slot = gid;
     uint taken = 1u;
-    uint id = trace_ray(CTX_ARG slot);
-    Ray ray = load_ray(CTX_ARG id);
-    Trace tr = trace_start(CTX_ARG ray, id);
+    uint id;
+    Ray ray;
+    Trace tr;
     BVH_RAY_VALUES
-    BVH_SET_RAY(ray)
+    // the ray of launch slot `slot` set up for its walk (the walk's own sp and node: the root)
+#define BVH_REFILL_START {                                                                \
+        id = trace_ray(CTX_ARG slot);                                                     \
+        ray = load_ray(CTX_ARG id);                                                       \
+        tr = trace_start(CTX_ARG ray, id);                                                \
+        BVH_SET_RAY(ray)                                                                  \
+    }
+    BVH_REFILL_START
 #define BVH_REFILL_NEXT                                                                   \
     store_hit(CTX_ARG id, trace_finish(CTX_ARG tr, id));                                  \
     slot += V(n_items);                                                                   \
@@ -1345,10 +1352,7 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
         done = 1;                                                                         \
     } else {                                                                              \
         taken += 1u;                                                                      \
-        id = trace_ray(CTX_ARG slot);                                                     \
-        ray = load_ray(CTX_ARG id);                                                       \
-        tr = trace_start(CTX_ARG ray, id);                                                \
-        BVH_SET_RAY(ray)                                                                  \
+        BVH_REFILL_START                                                                  \
         sp = 0;                                                                           \
         node = 0u;                                                                        \
     }
