@@ -33,7 +33,7 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("grid-ls", grid_ls, False, True, "grid with a Line Space per non-empty voxel (3.3.3, Alg. 2)"),
     StructureInfo("svo-ls", svo_ls, True, True, "adaptive Line Space in svo leaves (4, 5.1, Alg. 3)"),
     StructureInfo("esvo-ls", esvo_ls, True, True, "adaptive Line Space in esvo leaves (5.2)"),
-    StructureInfo("bvh", bvh, False, False, "binary BVH: Morton codes, Karras 2012, treelet restructuring (Fig. 4c baseline)",
+    StructureInfo("bvh", bvh, False, False, "binary BVH: binned SAH, treelet restructuring (Fig. 4c baseline)",
                   bvh.DEFAULT_LEAF_SIZE, packets=True, refill=True),
     StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
                   bvh_ls_module.DEFAULT_LEAF_SIZE, refill=True),

@@ -2,12 +2,23 @@
 pick instead of the grids and octrees (the thesis' Fig. 4c baseline). Kernels: shaders/common/bvh.h
 on scene.h and trace.h. All steps run on the device, written once for both backends:
 
-1. Morton codes: a 30-bit code per triangle centroid over the scene bounds (10 bits per axis).
-2. Sort: an LSD radix sort of (code, triangle id), 5 bits per pass, 6 passes; each pass is a
-   per-chunk digit count, Device.exclusive_scan of the digit-major counts, and a stable scatter
-   (bvh.h). The sorted ids are the structure's voxel_tris: every leaf is a range of it.
-3. Hierarchy: Karras 2012 (a binary radix tree over the sorted codes, one work item per inner
-   node, equal codes ordered by position).
+1-3. The binary hierarchy, one of two (options["bvh_hierarchy"], HIERARCHIES), each a tree over
+   ranges of a permutation of the triangle ids (voxel_tris: every leaf is a range of it), its inner
+   nodes named as Karras 2012 names them:
+   - "binned" (the default): a top-down binned SAH tree (Wald 2007; bvh.h: bvh_sah_*,
+     binned_hierarchy below). Nodes of at least SAH_LARGE triangles split a level per round, a work
+     item per triangle and per node: centroid bounds and 32 bins per axis by atomics, the boundary
+     of least SA(L) n_L + SA(R) n_R, the sides, Device's exclusive scan of them and a stable
+     partition; each smaller node is built whole by one work item (16 bins). Against the Morton
+     tree, with the same quality pass after it (PoCL, Sponza 256², docs/profiles.md section 22):
+     SAH cost 83 against 94, node visits per incoherent ray 7.0 against 8.6, 0.74 of the trace's
+     device time on incoherent rays, 0.91 on primary rays; bvh-ls 0.68 and 0.61. The build takes
+     0.7 s where the Morton tree's took 0.2.
+   - "morton": 1. Morton codes: a 30-bit code per triangle centroid over the scene bounds (10
+     bits per axis). 2. Sort: an LSD radix sort of (code, triangle id), 5 bits per pass, 6 passes;
+     each pass is a per-chunk digit count, Device.exclusive_scan of the digit-major counts, and a
+     stable scatter (bvh.h). 3. Hierarchy: Karras 2012 (a binary radix tree over the sorted codes,
+     one work item per inner node, equal codes ordered by position).
 4. Box fit, bottom up with an atomic arrival counter per node (Karras 2012, 4); in the same pass
    the surface-area heuristic decides which subtrees of at most `leaf_size` triangles become
    leaves (bvh.h: bvh_fit_kernel).
@@ -19,7 +30,7 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    The SAH cost of the tree after each stage is in the stats: `sah_cost_plain` (the plain LBVH:
    every node of at most leaf_size triangles a leaf), `sah_cost_collapse` (SAH leaves) and
    `sah_cost` (as built), so every build measures the gain; the device time of each kernel is in
-   `build_kernel_seconds` (OpenCL). Sponza (262k triangles, leaf size 8, PoCL on 2 shared cores):
+   `build_kernel_seconds` (OpenCL). Sponza's Morton tree (262k triangles, leaf size 8, PoCL on 2 shared cores):
    SAH cost 177 -> 164 -> 102, binary node visits per primary ray 141 -> 69, about +40 % rays/s,
    for 0.34 s of restructuring (6 rounds; 3 rounds: SAH 107 in 0.15 s). options["bvh_quality"]
    (QUALITIES) stops after a stage.
@@ -71,8 +82,11 @@ without locality go 16 per work item, a lane starting its next ray where its las
 BVH_REFILL, backends.refill_rays): Sponza 256² incoherent 0.86-0.93 of the device time, BMW 0.73
 (docs/profiles.md, section 21).
 
-Temporary buffers (released after the build): keys and ids twice (ping-pong sort), digit counts
-(32 per chunk of SORT_CHUNK keys), children, ranges, parents, arrival counters, collapse flags,
+Temporary buffers (released after the build): binned, a second order and two per-position node
+indices (4 bytes each per triangle), the sides' scan, a list of small nodes (8 bytes per
+triangle) and the large nodes' lists, choices and bins (one 2.7 KiB set of bins per node of a
+batch, at most one per SAH_LARGE triangles); morton, keys and ids twice (ping-pong sort), digit
+counts (32 per chunk of SORT_CHUNK keys); both: children, ranges, parents, arrival counters, collapse flags,
 triangle counts, two costs (4 bytes each per node or primitive) and the fitted boxes (32 bytes per
 inner node).
 
@@ -116,6 +130,10 @@ DEFAULT_LEAF_SIZE = 2
 # TREELET_ROUNDS rounds of treelet restructuring, Karras & Aila 2013; bvh's default),
 # "plain-treelet" (the plain leaves, then the restructuring; bvh-ls's default).
 QUALITIES = ("none", "sah", "treelet", "plain-treelet")
+# The binary tree those passes start from (options["bvh_hierarchy"]): "binned" (build 3 below: a
+# top-down binned SAH tree, bvh.h bvh_sah_*; the default) or "morton" (builds 1-3: Morton codes,
+# their radix sort and the Karras 2012 hierarchy, a linear BVH).
+HIERARCHIES = ("binned", "morton")
 TREELET_ROUNDS = 6
 MAX_TRIANGLES = 2**31 - 1
 
@@ -157,11 +175,42 @@ WRITE = KernelSpec("bvh_write", BVH_HEADERS, "bvh_write_kernel",
                                     Buf("bvh_ranges", "uint", "r"), Buf("bvh_keep", "uint", "r"),
                                     Buf("bvh_ids", "uint", "r"), Buf("bvh_fit_boxes", "float4", "r"),
                                     Buf("bvh_nodes", "float4", "w"), Buf("bvh_links", "uint4", "w")), BVH_UNIFORMS)
+# Build 3, the binned SAH hierarchy (bvh.h: bvh_sah_*; HIERARCHIES "binned").
+SAH_UNIFORMS = BVH_UNIFORMS + (Uniform("sah_node_base", "uint"), Uniform("sah_node_count", "uint"))
+SAH_LARGE = 64  # nodes of at least this many triangles split level by level; must match bvh.h BVH_SAH_LARGE
+SAH_BIN_BYTES = 3 * 32 * 7 * 4  # a large node's bins: 3 axes, BVH_SAH_BINS, BVH_SAH_BIN_WORDS uints
+SAH_CENTROIDS = KernelSpec("bvh_sah_centroids", BVH_HEADERS, "bvh_sah_centroids_kernel",
+                           SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("sah_pos_node", "uint", "r"),
+                                            Buf("sah_cbounds", "uint", "rw")), SAH_UNIFORMS)
+SAH_BIN = KernelSpec("bvh_sah_bin", BVH_HEADERS, "bvh_sah_bin_kernel",
+                     SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("sah_pos_node", "uint", "r"),
+                                      Buf("sah_cbounds", "uint", "r"), Buf("sah_bins", "uint", "rw")), SAH_UNIFORMS)
+SAH_CHOOSE = KernelSpec("bvh_sah_choose", BVH_HEADERS_NO_SCENE, "bvh_sah_choose_kernel",
+                        (Buf("sah_cbounds", "uint", "r"), Buf("sah_bins", "uint", "r"), Buf("sah_split", "uint4", "rw")),
+                        SAH_UNIFORMS)
+SAH_FLAGS = KernelSpec("bvh_sah_flags", BVH_HEADERS, "bvh_sah_flags_kernel",
+                       SCENE_BUFFERS + (Buf("voxel_tris", "uint", "r"), Buf("sah_pos_node", "uint", "r"),
+                                        Buf("sah_split", "uint4", "r"), Buf("sah_scan", "uint", "w")), SAH_UNIFORMS)
+SAH_EMIT = KernelSpec("bvh_sah_emit", BVH_HEADERS_NO_SCENE, "bvh_sah_emit_kernel",
+                      (Buf("sah_active", "uint4", "r"), Buf("sah_split", "uint4", "rw"), Buf("sah_scan", "uint", "r"),
+                       Buf("sah_next", "uint4", "w"), Buf("sah_small", "uint4", "w"), Buf("sah_counts", "uint", "rw"),
+                       Buf("sah_root", "uint", "rw"), Buf("bvh_children", "uint", "rw"), Buf("bvh_ranges", "uint", "w"),
+                       Buf("bvh_parents", "uint", "w")), SAH_UNIFORMS)
+SAH_PARTITION = KernelSpec("bvh_sah_partition", BVH_HEADERS_NO_SCENE, "bvh_sah_partition_kernel",
+                           (Buf("voxel_tris", "uint", "r"), Buf("sah_pos_node", "uint", "r"), Buf("sah_active", "uint4", "r"),
+                            Buf("sah_split", "uint4", "r"), Buf("sah_scan", "uint", "r"),
+                            Buf("sah_order_out", "uint", "w"), Buf("sah_pos_node_out", "uint", "w")), SAH_UNIFORMS)
+SAH_SMALL = KernelSpec("bvh_sah_small", BVH_HEADERS, "bvh_sah_small_kernel",
+                       SCENE_BUFFERS + (Buf("voxel_tris", "uint", "rw"), Buf("sah_small", "uint4", "r"),
+                                        Buf("sah_root", "uint", "rw"), Buf("bvh_children", "uint", "rw"),
+                                        Buf("bvh_ranges", "uint", "w"), Buf("bvh_parents", "uint", "w"),
+                                        Buf("bvh_cut", "uint", "rw")), SAH_UNIFORMS)
+SAH_SPECS = (SAH_CENTROIDS, SAH_BIN, SAH_CHOOSE, SAH_FLAGS, SAH_EMIT, SAH_PARTITION, SAH_SMALL)
 RECORDS = KernelSpec("bvh_records", BVH_HEADERS_NO_SCENE, "bvh_records_kernel",
                      (Buf("voxel_tris", "uint", "r"), Buf("tri_verts", "float4", "r"),
                       Buf("bvh_records", "float4", "w")), ())
 BUILD_SPECS = (MORTON, SORT_COUNT, SORT_SCATTER, EMIT, FIT, RESTRUCTURE, WAVE_START, RESTRUCTURE_WAVE, KEEP, WIDE_FLAGS,
-               WRITE, RECORDS)
+               WRITE, RECORDS) + SAH_SPECS
 
 BVH_TRACE_BUFFERS = (Buf("bvh_nodes", "float4", "t"), Buf("bvh_links", "uint4", "t"), Buf("voxel_tris", "uint", "t"))
 FLOAT_NODE_BUFFERS = ("bvh_nodes", "bvh_links")
@@ -275,6 +324,91 @@ def sort_by_morton_code(device: Device, scene_buffers: dict, n_tris: int, unifor
     return keys, ids
 
 
+def binned_hierarchy(device: Device, scene_buffers: dict, n_tris: int, uniforms: dict, tree: dict
+                     ) -> tuple[DeviceBuffer, int]:
+    """Build 3, "binned" (bvh.h: bvh_sah_*): the top-down binned SAH hierarchy of n_tris >= 2
+    triangles into tree's bvh_children, bvh_ranges and bvh_parents (as EMIT writes them). Nodes of
+    at least SAH_LARGE triangles split a level per round (centroid bounds and bins in batches that
+    fit one buffer, the choice, the sides and their scan, the stable partition into the other order
+    buffer); the smaller ones are then built whole, a work item each. Returns the triangle ids in
+    the tree's order (voxel_tris) and the rounds."""
+    n = n_tris
+    order = device.upload("voxel_tris", np.arange(n, dtype=np.uint32))
+    temps: list[DeviceBuffer] = [order]  # all released but the order buffer returned
+
+    def temp(name, nbytes, zero=False):
+        buf = device.alloc(name, nbytes, zero=zero)
+        temps.append(buf)
+        return buf
+
+    try:
+        other = temp("sah_order_out", 4 * n)
+        pos, pos_out = temp("sah_pos_node", 4 * n, zero=True), temp("sah_pos_node_out", 4 * n)  # all in node 0
+        most = max(1, n // SAH_LARGE)  # large nodes at one level: disjoint, of at least SAH_LARGE each
+        active, following = temp("sah_active", 16 * most), temp("sah_next", 16 * most)
+        small = temp("sah_small", 16 * max(1, n // 2))  # disjoint nodes of at least 2
+        split = temp("sah_split", 32 * most)
+        scan = temp("sah_scan", 4 * (n + 1))
+        root = temp("sah_root", 4, zero=True)
+        cut = temp("sah_cut", 4, zero=True)
+        batch = max(1, min(most, device.max_buffer_bytes // SAH_BIN_BYTES))
+        bins, cbounds = temp("sah_bins", SAH_BIN_BYTES * batch), temp("sah_cbounds", 24 * batch)
+        whole = np.array([0, n - 1, 0xFFFFFFFF, 0], np.uint32)  # the root: first, last, parent, side
+        if n >= SAH_LARGE:
+            device.write(active, whole)
+            counts, m = device.upload("sah_counts", np.zeros(2, np.uint32)), 1
+        else:
+            device.write(small, whole)
+            counts, m = device.upload("sah_counts", np.array([0, 1], np.uint32)), 0
+        temps.append(counts)
+        rounds = 0
+        while m:
+            device.fill_zero(counts, 4)  # the next level's count; the small list's keeps counting
+            for base in range(0, m, batch):
+                cnt = min(batch, m - base)
+                device.fill_zero(bins, SAH_BIN_BYTES * cnt)
+                device.fill_zero(cbounds, 24 * cnt)
+                u = dict(uniforms, sah_node_base=base, sah_node_count=cnt)
+                level = dict(scene_buffers, voxel_tris=order, sah_pos_node=pos, sah_cbounds=cbounds, sah_bins=bins)
+                device.dispatch(SAH_CENTROIDS, n, level, u)
+                device.dispatch(SAH_BIN, n, level, u)
+                device.dispatch(SAH_CHOOSE, cnt, {"sah_cbounds": cbounds, "sah_bins": bins, "sah_split": split}, u)
+            u = dict(uniforms, sah_node_base=0, sah_node_count=m)
+            device.dispatch(SAH_FLAGS, n + 1, dict(scene_buffers, voxel_tris=order, sah_pos_node=pos,
+                                                   sah_split=split, sah_scan=scan), u)
+            device.scan_in_place(scan, n + 1)
+            device.dispatch(SAH_EMIT, m, dict(tree, sah_active=active, sah_split=split, sah_scan=scan,
+                                              sah_next=following, sah_small=small, sah_counts=counts, sah_root=root), u)
+            device.dispatch(SAH_PARTITION, n, {"voxel_tris": order, "sah_pos_node": pos, "sah_active": active,
+                                               "sah_split": split, "sah_scan": scan, "sah_order_out": other,
+                                               "sah_pos_node_out": pos_out}, u)
+            order, other, pos, pos_out, active, following = other, order, pos_out, pos, following, active
+            m = device.read_uint(counts, 0)
+            rounds += 1
+        n_small = device.read_uint(counts, 1)
+        if n_small:
+            device.dispatch(SAH_SMALL, n_small, dict(scene_buffers, **tree, voxel_tris=order, sah_small=small,
+                                                     sah_root=root, bvh_cut=cut), dict(uniforms, sah_node_base=0,
+                                                                                        sah_node_count=n_small))
+        if device.read_uint(cut, 0):
+            raise device.loop_limit_error(f"the binned SAH build's loops (a node of fewer than {SAH_LARGE} "
+                                          "triangles, built by one work item)")
+    except BaseException:
+        for b in temps:
+            device.release(b)
+        raise
+    for b in temps:
+        if b is not order:
+            device.release(b)
+    return order, rounds
+
+
+def check_hierarchy(value: str) -> str:
+    if value not in HIERARCHIES:
+        raise ValueError(f"bvh_hierarchy must be one of {', '.join(HIERARCHIES)}, got {value!r}")
+    return value
+
+
 def check_quality(value: str) -> str:
     if value not in QUALITIES:
         raise ValueError(f"bvh_quality must be one of {', '.join(QUALITIES)}, got {value!r}")
@@ -282,22 +416,27 @@ def check_quality(value: str) -> str:
 
 
 def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeometry, leaf_size: int,
-              quality: str = "treelet", layout: str = "float") -> tuple[dict[str, DeviceBuffer], dict]:
+              quality: str = "treelet", layout: str = "float", hierarchy: str = "binned"
+              ) -> tuple[dict[str, DeviceBuffer], dict]:
     """Build steps 1-6 (module docstring) with nodes in `layout` (NODE_LAYOUTS). Returns the
     structure's buffers (bvh_nodes and bvh_links, or bvh_qnodes; voxel_tris) and the build's stats."""
     node_bytes = NODE_LAYOUTS[layout]
     width = NODE_WIDTHS[layout]
     records = width // 4  # 4-slot records per node
     sah = check_quality(quality) in ("sah", "treelet")
+    check_hierarchy(hierarchy)
     if n_tris > MAX_TRIANGLES:
         raise DeviceLimitError(f"bvh: {n_tris} triangles overflow the 31-bit triangle and leaf indices")
     if n_tris < 1:
         raise ValueError("bvh: the scene has no triangles")
     inner = n_tris - 1
     u = dict(geometry.uniforms(), bvh_n=n_tris, bvh_leaf_size=leaf_size, bvh_sah=int(sah), bvh_node_count=0)
-    keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
-    temps = [keys]
-    made = [tris]
+    if hierarchy == "morton" or inner == 0:
+        keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
+        temps = [keys]
+    else:
+        keys, tris, temps = None, None, []
+    made = [tris] if tris is not None else []
     try:
         def temp(name, nbytes, zero=False):
             buf = device.alloc(name, nbytes, zero=zero)
@@ -307,6 +446,11 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         children = temp("bvh_children", 8 * inner)
         ranges = temp("bvh_ranges", 8 * inner)
         parents = temp("bvh_parents", 4 * (inner + n_tris))
+        stats: dict = {"triangles": n_tris, "leaf_size": leaf_size, "quality_pass": quality, "hierarchy": hierarchy}
+        if keys is None:
+            tris, stats["hierarchy_rounds"] = binned_hierarchy(
+                device, scene_buffers, n_tris, u, {"bvh_children": children, "bvh_ranges": ranges, "bvh_parents": parents})
+            made.append(tris)
         boxes = temp("bvh_fit_boxes", 32 * inner)
         costs = temp("bvh_costs", 8 * inner)
         collapse = temp("bvh_collapse", 4 * inner)
@@ -314,12 +458,12 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
                         bvh_parents=parents, bvh_fit_boxes=boxes, bvh_costs=costs, bvh_collapse=collapse)
         counts = temp("bvh_counts", 4 * inner)
         fit_bufs["bvh_counts"] = counts
-        stats: dict = {"triangles": n_tris, "leaf_size": leaf_size, "quality_pass": quality}
         if inner > 0:
-            device.dispatch(EMIT, inner, {"bvh_keys": keys, "bvh_children": children, "bvh_ranges": ranges,
-                                          "bvh_parents": parents}, u)
-            temps.remove(keys)
-            device.release(keys)
+            if keys is not None:
+                device.dispatch(EMIT, inner, {"bvh_keys": keys, "bvh_children": children, "bvh_ranges": ranges,
+                                              "bvh_parents": parents}, u)
+                temps.remove(keys)
+                device.release(keys)
             arrivals = temp("bvh_arrivals", 4 * inner, zero=True)
             device.dispatch(FIT, n_tris, dict(fit_bufs, bvh_arrivals=arrivals), u)
             root = device.read(boxes, np.float32, 8)
@@ -402,7 +546,8 @@ def build(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGeomet
     leaf_size = check_leaf_size(params.leaf_size)
     buffers, stats = build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
                                quality=params.options.get("bvh_quality", "treelet"),
-                               layout=node_layout(device, params.options))
+                               layout=node_layout(device, params.options),
+                               hierarchy=params.options.get("bvh_hierarchy", "binned"))
     try:
         buffers["tri_verts"] = leaf_order_records(device, scene_buffers, buffers["voxel_tris"], n_tris)
     except BaseException:

@@ -3,9 +3,11 @@
 cells and the leaf lookup) on linespace.h and octree_ls.h.
 
 Build, all on the device:
-1. the BVH as `bvh` builds it (bvh.build_bvh), but with the plain LBVH's leaves: every subtree of
-   at most leaf_size triangles (default 16) is one leaf, then the treelet restructuring above them
-   (bvh_quality "plain-treelet"). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
+1. the BVH as `bvh` builds it (bvh.build_bvh; the binned SAH tree, bvh_hierarchy "binned"), but
+   with plain leaves: every subtree of at most leaf_size triangles (default 16) is one leaf, then
+   the treelet restructuring above them (bvh_quality "plain-treelet"). The binned tree against the
+   Morton one (Sponza 256², PoCL): 0.68 of the trace's device time on incoherent rays, 0.61 on
+   primary rays (docs/profiles.md, section 22). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
    leaves of ~2 triangles, which no Line Space can speed up; here the Line Space is what makes a
    large leaf cheap to test (bvh_quality = "treelet" asks for the SAH leaves);
 2. the cells: every child slot of a node record (cell = 4 * record + slot) that is a leaf of more than
@@ -55,7 +57,8 @@ class LineSpaceBVH:
         k = linespace.check_min_candidates(params.ls_min_candidates)
         layout = bvh.node_layout(device, params.options, serial_auto="float")
         buffers, stats = bvh.build_bvh(device, scene_buffers, n_tris, geometry, leaf_size,
-                                       quality=params.options.get("bvh_quality", "plain-treelet"), layout=layout)
+                                       quality=params.options.get("bvh_quality", "plain-treelet"), layout=layout,
+                                       hierarchy=params.options.get("bvh_hierarchy", "binned"))
         node_bufs = {name: buffers[name] for name in buffers if name != "voxel_tris"}
         slots = stats["width"] * stats["nodes"]
         u = dict(geometry.uniforms(), ls_min_count=k)

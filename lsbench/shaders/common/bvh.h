@@ -1,6 +1,7 @@
-// `bvh` and `bvh-ls`: a BVH built on the device (a linear BVH: Morton codes of the
-// triangles' centroids, a radix sort, the hierarchy of Karras 2012, "Maximizing parallelism in the
-// construction of BVHs, octrees, and k-d trees", a bottom-up box fit with atomics, an SAH leaf
+// `bvh` and `bvh-ls`: a BVH built on the device (a top-down binned SAH tree, Wald 2007, or a
+// linear BVH: Morton codes of the triangles' centroids, a radix sort, the hierarchy of Karras 2012,
+// "Maximizing parallelism in the construction of BVHs, octrees, and k-d trees"; then a bottom-up
+// box fit with atomics, an SAH leaf
 // collapse, treelet restructuring after Karras & Aila 2013), made 4- or 8-wide, and its stack
 // traversal (the children's boxes in the parent as Aila & Laine 2009, "Understanding the efficiency
 // of ray traversal on GPUs", 4 or 8 of them as Embree's BVH4 and BVH8; nearest child first).
@@ -31,7 +32,7 @@
 //              8 bits times a power of two; the sum rounds once, the same in the build and the
 //              traversal), and the build picks q so that the box holds the child's exact one.
 //              Leaves hold at most 255 triangles (bvh.py LEAF_SIZES).
-//   voxel_tris the triangle ids in Morton order (every leaf a contiguous range of it; trace.h
+//   voxel_tris the triangle ids in the tree's order (every leaf a contiguous range of it; trace.h
 //              tests a cell's plain list from this buffer, whatever the structure)
 // Node 0 is the root. A scene of at most leaf-size triangles has one node whose slot 0 is a leaf
 // of all of them.
@@ -187,7 +188,9 @@ INLINE void bvh_emit_kernel(CTX_PARAM uint gid) {
 }
 #endif
 
-#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure) || defined(KERNEL_bvh_restructure_wave)
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure) || \
+    defined(KERNEL_bvh_restructure_wave) || defined(KERNEL_bvh_sah_centroids) || defined(KERNEL_bvh_sah_bin) || \
+    defined(KERNEL_bvh_sah_flags) || defined(KERNEL_bvh_sah_small)
 // The box of triangle `tri` (world space).
 INLINE Box triangle_box(CTX_PARAM uint tri) {
     Triangle t = load_triangle(CTX_ARG tri);
@@ -196,6 +199,9 @@ INLINE Box triangle_box(CTX_PARAM uint tri) {
     b.hi = max(t.a, max(t.b, t.c));
     return b;
 }
+#endif
+
+#if defined(KERNEL_bvh_fit) || defined(KERNEL_bvh_write) || defined(KERNEL_bvh_restructure) || defined(KERNEL_bvh_restructure_wave)
 
 // The box of Karras child code `c`: a primitive's triangle box, or an inner node's fitted box.
 INLINE Box bvh_child_box(CTX_PARAM uint c) {
@@ -204,6 +210,380 @@ INLINE Box bvh_child_box(CTX_PARAM uint c) {
     b.lo = V(bvh_fit_boxes)[2u * c].xyz;
     b.hi = V(bvh_fit_boxes)[2u * c + 1u].xyz;
     return b;
+}
+#endif
+
+#if defined(KERNEL_bvh_sah_centroids) || defined(KERNEL_bvh_sah_bin) || defined(KERNEL_bvh_sah_choose) || \
+    defined(KERNEL_bvh_sah_flags) || defined(KERNEL_bvh_sah_emit) || defined(KERNEL_bvh_sah_partition) || \
+    defined(KERNEL_bvh_sah_small)
+// ---- Build 3 (bvh's default hierarchy, bvh.py HIERARCHIES "binned"): a top-down binned SAH tree ----
+// Wald 2007, "On fast construction of SAH-based bounding volume hierarchies": a node's triangles
+// go into bins of equal width along each axis of their centroids' extent, and the node splits at
+// the bin boundary of least SA(L) n_L + SA(R) n_R, down to single triangles (the fit's SAH collapse
+// and the treelets then work on it as on the Karras tree). Sponza's incoherent rays took 0.74 of
+// the device time of the Morton tree's (8.59 -> 7.61 node visits per ray), its primary rays 0.80,
+// BMW's incoherent rays 0.92 (docs/profiles.md, section 22): the Morton curve puts a large
+// triangle in the cell of its centroid, and the tree's boxes then overlap more.
+// Nodes of at least BVH_SAH_LARGE triangles split level by level, a work item per triangle
+// position and per node (the centroids' bounds and the bins by atomics, the choice per node, the
+// sides, an exclusive scan of them, then a stable partition into the other order buffer); the
+// smaller ones (fewer than BVH_SAH_LARGE) are built whole by one work item each, in place
+// (bvh_sah_small_kernel). Every node covers a range of voxel_tris, as a Karras node does, and is
+// named as Karras names them: by the position of its split (the last position of its left child),
+// except the root, which is node 0 and gives its own split's name to the node whose split is at 0.
+// So the buffers the fit reads (children, ranges, parents) are the same as EMIT's, and every
+// atomic here is order-free (counts, maxima): the tree is the same on every run and device.
+#define BVH_SAH_BINS 32u        // bins per axis, nodes of at least BVH_SAH_LARGE triangles
+#define BVH_SAH_SMALL_BINS 16u  // bins per axis, the nodes each work item builds whole
+#define BVH_SAH_LARGE 64u       // must match bvh.py SAH_LARGE
+#define BVH_SAH_STACK 8         // the smaller child is split first: at most log2(BVH_SAH_LARGE) + 2 held
+#define BVH_SAH_MEDIAN 3u       // a node's axis where no bin boundary separates its centroids: split at half
+#define BVH_SAH_BIN_WORDS 7u    // a bin: its count, then its triangles' box (lo complemented, bvh_ordered)
+
+// floats as uints in the same order, for the atomic maxima (atomics on floats are core in neither
+// language); a minimum is kept as the maximum of the complement, so every word starts at 0.
+INLINE uint bvh_ordered(float f) {
+    uint b = as_uint(f);
+    return (b & 0x80000000u) != 0u ? ~b : (b | 0x80000000u);
+}
+INLINE float bvh_unordered(uint k) { return as_float((k & 0x80000000u) != 0u ? (k & 0x7fffffffu) : ~k); }
+// An atomic maximum only where a plain read shows it could raise the word (the words only grow, so
+// a stale read errs towards the atomic): once a node's bounds settle, most triangles leave its
+// cache lines unwritten (Sponza's top nodes: every triangle's 21 atomics on the same 96 bins).
+#define BVH_RAISE(lvalue, v) if ((lvalue) < (v)) ATOMIC_MAX(lvalue, v);
+
+INLINE float bvh_axis(float3 v, uint a) { return a == 0u ? v.x : (a == 1u ? v.y : v.z); }
+
+INLINE Box bvh_empty_box() {
+    Box b;
+    b.lo = make_float3(BVH_FLT_MAX, BVH_FLT_MAX, BVH_FLT_MAX);
+    b.hi = make_float3(-BVH_FLT_MAX, -BVH_FLT_MAX, -BVH_FLT_MAX);
+    return b;
+}
+
+// A triangle's centroid: its box's centre.
+INLINE float3 bvh_sah_centroid(Box b) { return (b.lo + b.hi) * 0.5f; }
+
+// Bins per unit along an axis whose centroids span [lo, hi]: 0 where they do not (all in bin 0).
+INLINE float bvh_sah_scale(float lo, float hi, uint bins) {
+    float e = hi - lo;
+    return e > 0.0f && F32(bins) / e < BVH_FLT_MAX ? F32(bins) / e : 0.0f;
+}
+
+// The bin of centroid coordinate x. The choice and the partition call this one function on the same
+// floats, so a triangle's side is the side its bin was counted on.
+INLINE uint bvh_sah_bin(float x, float lo, float scale, uint bins) {
+    return U32(min(max((x - lo) * scale, 0.0f), F32(bins - 1u)));
+}
+
+// The least-cost split of a node's bins (BVH_SAH_BIN_WORDS words each) of one axis: a sweep from
+// the right keeps the area and count right of each boundary, one from the left prices them.
+#define BVH_SAH_SWEEP(BINS, COUNT, BOX, AXIS)                                                        \
+    {                                                                                              \
+        float right_area[BINS];                                                                    \
+        uint right_count[BINS];                                                                    \
+        Box acc = bvh_empty_box();                                                                 \
+        uint n = 0u;                                                                               \
+        for (uint i = BINS - 1u; i >= 1u; --i) {                                                   \
+            if (COUNT(i) != 0u) { acc = box_union(acc, BOX(i)); n += COUNT(i); }                   \
+            right_area[i] = box_area(acc);                                                         \
+            right_count[i] = n;                                                                    \
+        }                                                                                          \
+        acc = bvh_empty_box();                                                                     \
+        n = 0u;                                                                                    \
+        for (uint i = 0u; i + 1u < BINS; ++i) {                                                    \
+            if (COUNT(i) != 0u) { acc = box_union(acc, BOX(i)); n += COUNT(i); }                   \
+            if (n != 0u && right_count[i + 1u] != 0u) {                                            \
+                float cost = box_area(acc) * F32(n) + right_area[i + 1u] * F32(right_count[i + 1u]); \
+                if (cost < best) { best = cost; best_axis = AXIS; best_bin = i; }                  \
+            }                                                                                      \
+        }                                                                                          \
+    }
+#endif
+
+#if defined(KERNEL_bvh_sah_centroids) || defined(KERNEL_bvh_sah_bin) || defined(KERNEL_bvh_sah_flags) || \
+    defined(KERNEL_bvh_sah_small)
+// The box of the triangle at position p of the current order.
+INLINE Box bvh_sah_tri_box(CTX_PARAM uint p) { return triangle_box(CTX_ARG V(voxel_tris)[p]); }
+#endif
+
+#if defined(KERNEL_bvh_sah_emit) || defined(KERNEL_bvh_sah_small)
+// Karras' name of the node at positions node.x..node.y (parent node.z, its child node.w) that
+// splits after position `split`; writes its range, its parent and its parent's link to it.
+INLINE uint bvh_sah_node(CTX_PARAM uint4 node, uint split) {
+    uint name = split;
+    if (node.z == BVH_NONE) {
+        V(sah_root)[0] = split;  // read by the node whose split is at 0, in a later dispatch or later here
+        name = 0u;
+    } else {
+        if (split == 0u) name = V(sah_root)[0];
+        V(bvh_children)[2u * node.z + node.w] = name;
+    }
+    V(bvh_parents)[name] = node.z;
+    V(bvh_ranges)[2u * name] = node.x;
+    V(bvh_ranges)[2u * name + 1u] = node.y;
+    return name;
+}
+
+// A child of one triangle: the leaf at its position.
+INLINE void bvh_sah_leaf(CTX_PARAM uint position, uint parent, uint side) {
+    V(bvh_children)[2u * parent + side] = BVH_PRIM | position;
+    V(bvh_parents)[V(bvh_n) - 1u + position] = parent;
+}
+#endif
+
+#if defined(KERNEL_bvh_sah_centroids) || defined(KERNEL_bvh_sah_bin)
+// The slot in this batch of the node that position p belongs to, or BVH_NONE (a position of a
+// node already split, or of a node of another batch: bvh.py splits a level's nodes in batches that
+// fit the bins' buffer).
+INLINE uint bvh_sah_batch_slot(CTX_PARAM uint p) {
+    uint k = V(sah_pos_node)[p];
+    return k != BVH_NONE && k >= V(sah_node_base) && k - V(sah_node_base) < V(sah_node_count)
+        ? k - V(sah_node_base) : BVH_NONE;
+}
+#endif
+
+#if defined(KERNEL_bvh_sah_bin) || defined(KERNEL_bvh_sah_choose)
+// The centroids' bounds of the node in batch slot j (bvh_sah_centroids_kernel).
+INLINE Box bvh_sah_centroid_bounds(CTX_PARAM uint j) {
+    Box b;
+    b.lo = make_float3(bvh_unordered(~V(sah_cbounds)[6u * j]), bvh_unordered(~V(sah_cbounds)[6u * j + 1u]),
+                       bvh_unordered(~V(sah_cbounds)[6u * j + 2u]));
+    b.hi = make_float3(bvh_unordered(V(sah_cbounds)[6u * j + 3u]), bvh_unordered(V(sah_cbounds)[6u * j + 4u]),
+                       bvh_unordered(V(sah_cbounds)[6u * j + 5u]));
+    return b;
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_centroids
+// Per position of a large node: its centroid into the node's bounds.
+INLINE void bvh_sah_centroids_kernel(CTX_PARAM uint p) {
+    uint j = bvh_sah_batch_slot(CTX_ARG p);
+    if (j == BVH_NONE) return;
+    float3 c = bvh_sah_centroid(bvh_sah_tri_box(CTX_ARG p));
+    BVH_RAISE(V(sah_cbounds)[6u * j], ~bvh_ordered(c.x))
+    BVH_RAISE(V(sah_cbounds)[6u * j + 1u], ~bvh_ordered(c.y))
+    BVH_RAISE(V(sah_cbounds)[6u * j + 2u], ~bvh_ordered(c.z))
+    BVH_RAISE(V(sah_cbounds)[6u * j + 3u], bvh_ordered(c.x))
+    BVH_RAISE(V(sah_cbounds)[6u * j + 4u], bvh_ordered(c.y))
+    BVH_RAISE(V(sah_cbounds)[6u * j + 5u], bvh_ordered(c.z))
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_bin
+// Per position of a large node: its triangle counted, and its box merged, in its bin on each axis.
+INLINE void bvh_sah_bin_kernel(CTX_PARAM uint p) {
+    uint j = bvh_sah_batch_slot(CTX_ARG p);
+    if (j == BVH_NONE) return;
+    Box t = bvh_sah_tri_box(CTX_ARG p);
+    float3 c = bvh_sah_centroid(t);
+    Box cb = bvh_sah_centroid_bounds(CTX_ARG j);
+    for (uint a = 0u; a < 3u; ++a) {
+        float lo = bvh_axis(cb.lo, a);
+        uint i = bvh_sah_bin(bvh_axis(c, a), lo, bvh_sah_scale(lo, bvh_axis(cb.hi, a), BVH_SAH_BINS), BVH_SAH_BINS);
+        uint w = ((3u * j + a) * BVH_SAH_BINS + i) * BVH_SAH_BIN_WORDS;
+        ATOMIC_ADD(V(sah_bins)[w], 1u);
+        BVH_RAISE(V(sah_bins)[w + 1u], ~bvh_ordered(t.lo.x))
+        BVH_RAISE(V(sah_bins)[w + 2u], ~bvh_ordered(t.lo.y))
+        BVH_RAISE(V(sah_bins)[w + 3u], ~bvh_ordered(t.lo.z))
+        BVH_RAISE(V(sah_bins)[w + 4u], bvh_ordered(t.hi.x))
+        BVH_RAISE(V(sah_bins)[w + 5u], bvh_ordered(t.hi.y))
+        BVH_RAISE(V(sah_bins)[w + 6u], bvh_ordered(t.hi.z))
+    }
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_choose
+INLINE Box bvh_sah_bin_box(CTX_PARAM uint w) {
+    Box b;
+    b.lo = make_float3(bvh_unordered(~V(sah_bins)[w + 1u]), bvh_unordered(~V(sah_bins)[w + 2u]),
+                       bvh_unordered(~V(sah_bins)[w + 3u]));
+    b.hi = make_float3(bvh_unordered(V(sah_bins)[w + 4u]), bvh_unordered(V(sah_bins)[w + 5u]),
+                       bvh_unordered(V(sah_bins)[w + 6u]));
+    return b;
+}
+
+// Per large node of the batch: the split of least cost over the three axes' bins (ties: the lower
+// axis, then the lower bin), kept with the axis' bin origin and scale for the sides' kernel.
+INLINE void bvh_sah_choose_kernel(CTX_PARAM uint j) {
+    Box cb = bvh_sah_centroid_bounds(CTX_ARG j);
+    float best = INF_F;
+    uint best_axis = BVH_SAH_MEDIAN;
+    uint best_bin = 0u;
+    for (uint a = 0u; a < 3u; ++a) {
+        uint base = 3u * j + a;
+#define BVH_SAH_BIN_COUNT(i) V(sah_bins)[(base * BVH_SAH_BINS + (i)) * BVH_SAH_BIN_WORDS]
+#define BVH_SAH_BIN_BOX(i) bvh_sah_bin_box(CTX_ARG (base * BVH_SAH_BINS + (i)) * BVH_SAH_BIN_WORDS)
+        BVH_SAH_SWEEP(BVH_SAH_BINS, BVH_SAH_BIN_COUNT, BVH_SAH_BIN_BOX, a)
+#undef BVH_SAH_BIN_COUNT
+#undef BVH_SAH_BIN_BOX
+    }
+    float lo = best_axis == BVH_SAH_MEDIAN ? 0.0f : bvh_axis(cb.lo, best_axis);
+    float scale = best_axis == BVH_SAH_MEDIAN ? 0.0f
+        : bvh_sah_scale(lo, bvh_axis(cb.hi, best_axis), BVH_SAH_BINS);
+    V(sah_split)[2u * (V(sah_node_base) + j)] = make_uint4(best_axis, best_bin, as_uint(lo), as_uint(scale));
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_flags
+// Per position (and one past the last, 0): 1 where the triangle goes to its large node's left child.
+INLINE void bvh_sah_flags_kernel(CTX_PARAM uint p) {
+    uint left = 0u;
+    uint k = p < V(bvh_n) ? V(sah_pos_node)[p] : BVH_NONE;
+    if (k != BVH_NONE) {
+        uint4 s = V(sah_split)[2u * k];
+        if (s.x != BVH_SAH_MEDIAN) {
+            float x = bvh_axis(bvh_sah_centroid(bvh_sah_tri_box(CTX_ARG p)), s.x);
+            left = bvh_sah_bin(x, as_float(s.z), as_float(s.w), BVH_SAH_BINS) <= s.y ? 1u : 0u;
+        }
+    }
+    V(sah_scan)[p] = left;
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_emit
+// Per large node, after the exclusive scan of the sides: its left count, its name and links, and
+// its children queued: a leaf linked, a large child to the next level's list, a smaller one to the
+// list bvh_sah_small_kernel builds. A split that leaves a side empty (only where no boundary
+// separates the centroids) splits at half instead, the positions as they are.
+INLINE void bvh_sah_emit_kernel(CTX_PARAM uint k) {
+    uint4 node = V(sah_active)[k];
+    uint4 s = V(sah_split)[2u * k];
+    uint count = node.y - node.x + 1u;
+    uint left = V(sah_scan)[node.y + 1u] - V(sah_scan)[node.x];
+    if (s.x == BVH_SAH_MEDIAN || left == 0u || left == count) {
+        s.x = BVH_SAH_MEDIAN;
+        left = count / 2u;
+        V(sah_split)[2u * k] = s;
+    }
+    uint split = node.x + left - 1u;
+    uint name = bvh_sah_node(CTX_ARG node, split);
+    uint next[2];
+    for (uint side = 0u; side < 2u; ++side) {
+        uint first = side == 0u ? node.x : split + 1u;
+        uint last = side == 0u ? split : node.y;
+        next[side] = BVH_NONE;
+        if (first == last) {
+            bvh_sah_leaf(CTX_ARG first, name, side);
+        } else if (last - first + 1u >= BVH_SAH_LARGE) {
+            next[side] = ATOMIC_ADD(V(sah_counts)[0], 1u);
+            V(sah_next)[next[side]] = make_uint4(first, last, name, side);
+        } else {
+            V(sah_small)[ATOMIC_ADD(V(sah_counts)[1], 1u)] = make_uint4(first, last, name, side);
+        }
+    }
+    V(sah_split)[2u * k + 1u] = make_uint4(next[0], next[1], left, name);
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_partition
+// Per position: the triangle moved to its place in the other order buffer (left side first, each
+// side in its old order), with the index of its node in the next level's list (BVH_NONE: none).
+INLINE void bvh_sah_partition_kernel(CTX_PARAM uint p) {
+    uint k = V(sah_pos_node)[p];
+    uint tri = V(voxel_tris)[p];
+    uint dest = p;
+    uint node_next = BVH_NONE;
+    if (k != BVH_NONE) {
+        uint first = V(sah_active)[k].x;
+        uint4 s = V(sah_split)[2u * k];
+        uint4 e = V(sah_split)[2u * k + 1u];  // left child's next index, right's, left count
+        if (s.x != BVH_SAH_MEDIAN) {
+            uint before = V(sah_scan)[p] - V(sah_scan)[first];  // left ones before p in its node
+            dest = V(sah_scan)[p + 1u] != V(sah_scan)[p] ? first + before : first + e.z + (p - first - before);
+        }
+        node_next = dest < first + e.z ? e.x : e.y;
+    }
+    V(sah_order_out)[dest] = tri;
+    V(sah_pos_node_out)[dest] = node_next;
+}
+#endif
+
+#ifdef KERNEL_bvh_sah_small
+// Per node of fewer than BVH_SAH_LARGE triangles: its whole subtree by one work item, in place in
+// voxel_tris (a two-ended partition per split), the smaller child first so that the held ones stay
+// within BVH_SAH_STACK; splits that the loop budget of llvmpipe cut count into bvh_cut.
+INLINE void bvh_sah_small_kernel(CTX_PARAM uint gid) {
+    uint4 held[BVH_SAH_STACK];
+    uint top = 0u;
+    uint4 node = V(sah_small)[gid];
+    uint more = 1u;
+    while (more != 0u) {
+        uint count = node.y - node.x + 1u;
+        Box cb = bvh_empty_box();
+        for (uint p = node.x; p <= node.y; ++p) {
+            float3 c = bvh_sah_centroid(bvh_sah_tri_box(CTX_ARG p));
+            cb.lo = min(cb.lo, c);
+            cb.hi = max(cb.hi, c);
+        }
+        float best = INF_F;
+        uint best_axis = BVH_SAH_MEDIAN;
+        uint best_bin = 0u;
+        for (uint a = 0u; a < 3u; ++a) {
+            float lo = bvh_axis(cb.lo, a);
+            float scale = bvh_sah_scale(lo, bvh_axis(cb.hi, a), BVH_SAH_SMALL_BINS);
+            if (scale == 0.0f) continue;
+            uint counts[BVH_SAH_SMALL_BINS];
+            Box boxes[BVH_SAH_SMALL_BINS];
+            for (uint i = 0u; i < BVH_SAH_SMALL_BINS; ++i) {
+                counts[i] = 0u;
+                boxes[i] = bvh_empty_box();
+            }
+            for (uint p = node.x; p <= node.y; ++p) {
+                Box t = bvh_sah_tri_box(CTX_ARG p);
+                uint i = bvh_sah_bin(bvh_axis(bvh_sah_centroid(t), a), lo, scale, BVH_SAH_SMALL_BINS);
+                counts[i] += 1u;
+                boxes[i] = box_union(boxes[i], t);
+            }
+#define BVH_SAH_BIN_COUNT(i) counts[i]
+#define BVH_SAH_BIN_BOX(i) boxes[i]
+            BVH_SAH_SWEEP(BVH_SAH_SMALL_BINS, BVH_SAH_BIN_COUNT, BVH_SAH_BIN_BOX, a)
+#undef BVH_SAH_BIN_COUNT
+#undef BVH_SAH_BIN_BOX
+        }
+        uint left = count / 2u;
+        if (best_axis != BVH_SAH_MEDIAN) {
+            float lo = bvh_axis(cb.lo, best_axis);
+            float scale = bvh_sah_scale(lo, bvh_axis(cb.hi, best_axis), BVH_SAH_SMALL_BINS);
+            uint i = node.x;
+            uint j = node.y + 1u;  // [node.x, i) go left, [j, node.y] right
+            while (i < j) {
+                uint tri = V(voxel_tris)[i];
+                float x = bvh_axis(bvh_sah_centroid(triangle_box(CTX_ARG tri)), best_axis);
+                if (bvh_sah_bin(x, lo, scale, BVH_SAH_SMALL_BINS) <= best_bin) {
+                    ++i;
+                } else {
+                    --j;
+                    V(voxel_tris)[i] = V(voxel_tris)[j];
+                    V(voxel_tris)[j] = tri;
+                }
+            }
+            if (i != node.x && i != node.y + 1u) left = i - node.x;
+        }
+        uint split = node.x + left - 1u;
+        uint name = bvh_sah_node(CTX_ARG node, split);
+        uint4 l = make_uint4(node.x, split, name, 0u);
+        uint4 r = make_uint4(split + 1u, node.y, name, 1u);
+        if (l.x == l.y) bvh_sah_leaf(CTX_ARG l.x, name, 0u);
+        if (r.x == r.y) bvh_sah_leaf(CTX_ARG r.x, name, 1u);
+        if (l.x != l.y && r.x != r.y) {  // both inner: the larger held, the smaller next
+            uint left_smaller = l.y - l.x <= r.y - r.x ? 1u : 0u;
+            if (top < U32(BVH_SAH_STACK)) held[top] = left_smaller != 0u ? r : l;
+            else ATOMIC_ADD(V(bvh_cut)[0], 1u);  // cannot happen (the held halve): fail the build if it did
+            top += 1u;
+            node = left_smaller != 0u ? l : r;
+        } else if (l.x != l.y) {
+            node = l;
+        } else if (r.x != r.y) {
+            node = r;
+        } else if (top > 0u) {
+            top -= 1u;
+            node = held[min(top, U32(BVH_SAH_STACK) - 1u)];
+        } else {
+            more = 0u;
+        }
+    }
+    if (loops_intact(V(loop_probe)) == 0) ATOMIC_ADD(V(bvh_cut)[0], 1u);  // geometry.h: the driver cut loops
 }
 #endif
 

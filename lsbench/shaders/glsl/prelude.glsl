@@ -50,6 +50,7 @@
 #define CTX_ARG
 #define ATOMIC_ADD(lvalue, v) atomicAdd(lvalue, v)
 #define ATOMIC_MIN(lvalue, v) atomicMin(lvalue, v)
+#define ATOMIC_MAX(lvalue, v) atomicMax(lvalue, v)
 #define ATOMIC_OR(lvalue, v) atomicOr(lvalue, v)
 #define ATOMIC_XCHG(lvalue, v) atomicExchange(lvalue, v)
 #define ATOMIC_CAS(lvalue, expected, v) atomicCompSwap(lvalue, expected, v)

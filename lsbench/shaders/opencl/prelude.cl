@@ -48,6 +48,7 @@
 #define CTX_ARG C,
 #define ATOMIC_ADD(lvalue, v) atomic_add(&(lvalue), v)
 #define ATOMIC_MIN(lvalue, v) atomic_min(&(lvalue), v)
+#define ATOMIC_MAX(lvalue, v) atomic_max(&(lvalue), v)
 #define ATOMIC_OR(lvalue, v) atomic_or(&(lvalue), v)
 #define ATOMIC_XCHG(lvalue, v) atomic_xchg(&(lvalue), v)
 #define ATOMIC_CAS(lvalue, expected, v) atomic_cmpxchg(&(lvalue), expected, v)
