@@ -12,8 +12,9 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
      partition; each smaller node is built whole by one work item (16 bins). Against the Morton
      tree, with the same quality pass after it (PoCL, Sponza 256², docs/profiles.md section 22):
      SAH cost 83 against 94, node visits per incoherent ray 7.0 against 8.6, 0.74 of the trace's
-     device time on incoherent rays, 0.91 on primary rays; bvh-ls 0.68 and 0.61. The build takes
-     0.7 s where the Morton tree's took 0.2.
+     device time on incoherent rays, 0.91 on primary rays; bvh-ls 0.82 and 0.61. The build takes
+     0.4-0.7 s where the Morton tree's took 0.2 (BMW 1.2-1.7 s against 0.5; llvmpipe about twice
+     the Morton build's time).
    - "morton": 1. Morton codes: a 30-bit code per triangle centroid over the scene bounds (10
      bits per axis). 2. Sort: an LSD radix sort of (code, triangle id), 5 bits per pass, 6 passes;
      each pass is a per-chunk digit count, Device.exclusive_scan of the digit-major counts, and a

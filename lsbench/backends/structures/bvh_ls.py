@@ -6,8 +6,8 @@ Build, all on the device:
 1. the BVH as `bvh` builds it (bvh.build_bvh; the binned SAH tree, bvh_hierarchy "binned"), but
    with plain leaves: every subtree of at most leaf_size triangles (default 16) is one leaf, then
    the treelet restructuring above them (bvh_quality "plain-treelet"). The binned tree against the
-   Morton one (Sponza 256², PoCL): 0.68 of the trace's device time on incoherent rays, 0.61 on
-   primary rays (docs/profiles.md, section 22). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
+   Morton one (Sponza 256², PoCL, N = 2, K = 8): 0.82 of the trace's device time on incoherent
+   rays, 0.61 on primary rays (docs/profiles.md, section 22). The SAH collapse of `bvh` knows nothing of Line Spaces and keeps
    leaves of ~2 triangles, which no Line Space can speed up; here the Line Space is what makes a
    large leaf cheap to test (bvh_quality = "treelet" asks for the SAH leaves);
 2. the cells: every child slot of a node record (cell = 4 * record + slot) that is a leaf of more than

@@ -220,10 +220,10 @@ INLINE Box bvh_child_box(CTX_PARAM uint c) {
 // Wald 2007, "On fast construction of SAH-based bounding volume hierarchies": a node's triangles
 // go into bins of equal width along each axis of their centroids' extent, and the node splits at
 // the bin boundary of least SA(L) n_L + SA(R) n_R, down to single triangles (the fit's SAH collapse
-// and the treelets then work on it as on the Karras tree). Sponza's incoherent rays took 0.74 of
-// the device time of the Morton tree's (8.59 -> 7.61 node visits per ray), its primary rays 0.80,
-// BMW's incoherent rays 0.92 (docs/profiles.md, section 22): the Morton curve puts a large
-// triangle in the cell of its centroid, and the tree's boxes then overlap more.
+// and the treelets then work on it as on the Karras tree). PoCL, 256²: Sponza's incoherent rays
+// took 0.74 of the device time of the Morton tree's (8.59 -> 7.01 node visits per ray), its
+// primary rays 0.91, BMW's incoherent rays 0.74 (docs/profiles.md, section 22): the Morton curve
+// puts a large triangle in the cell of its centroid, and the tree's boxes then overlap more.
 // Nodes of at least BVH_SAH_LARGE triangles split level by level, a work item per triangle
 // position and per node (the centroids' bounds and the bins by atomics, the choice per node, the
 // sides, an exclusive scan of them, then a stable partition into the other order buffer); the
