@@ -93,8 +93,9 @@ inner node).
 
 Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
 scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
-per-buffer limit at allocation (llvmpipe 128 MiB: 2.1 M quantized 4-wide nodes of 64 bytes, ~30 M
-triangles for the sort buffers); the traversal's leaf entries address a slot as 4 * record + slot in
+per-buffer limit at allocation (llvmpipe 128 MiB: 2.1 M quantized 4-wide nodes of 64 bytes, ~16 M
+triangles for the binned build's list of small nodes, 8 bytes per triangle, ~30 M for the Morton
+sort's buffers; a level's large nodes whose bins overflow one buffer are binned in batches); the traversal's leaf entries address a slot as 4 * record + slot in
 31 bits; leaves hold at most 255 triangles (LEAF_SIZES: the quantized layout counts them in a byte)."""
 from __future__ import annotations
 
