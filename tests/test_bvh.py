@@ -264,15 +264,8 @@ def _awkward_scene():
     return Scene("awkward", v, np.arange(len(v), dtype=np.uint32).reshape(-1, 3), "test:awkward")
 
 
-@pytest.mark.parametrize("scene_name", ["spheres", "awkward"])
-def test_the_binned_hierarchy_splits_at_the_least_cost_boundary(device, scene_name):
-    """Build 3, "binned", on its own (bvh.binned_hierarchy) against a numpy reference: a binary
-    tree over ranges of a permutation, named as Karras names them (the fit reads it as EMIT's);
-    every split separates its children's centroids by a plane, and costs no more than the best
-    boundary of the reference's bins (32 per axis from 64 triangles up, else 16: the centroids'
-    extent divided in float32 as bvh.h does), SA(L) n_L + SA(R) n_R; where all centroids
-    coincide it splits at half."""
-    scene = _subset(load_scene("spheres"), 600) if scene_name == "spheres" else _awkward_scene()
+def _binned_tree(device, scene):
+    """bvh.binned_hierarchy on its own: (order, children, ranges, parents) as numpy arrays."""
     n = scene.triangle_count
     geometry = backends.geometry_for("bvh", scene, BuildParams(resolution=(1, 1, 1)))
     bvh.prepare(device)
@@ -283,14 +276,36 @@ def test_the_binned_hierarchy_splits_at_the_least_cost_boundary(device, scene_na
     u = dict(geometry.uniforms(), bvh_n=n, bvh_leaf_size=1, bvh_sah=1, bvh_node_count=0)
     order, rounds = bvh.binned_hierarchy(device, sb, n, u, tree)
     try:
-        order_np = device.read(order, np.uint32, n)
-        children = device.read(tree["bvh_children"], np.uint32, 2 * (n - 1)).reshape(-1, 2)
-        ranges = device.read(tree["bvh_ranges"], np.uint32, 2 * (n - 1)).reshape(-1, 2)
-        parents = device.read(tree["bvh_parents"], np.uint32, 2 * n - 1)
+        assert rounds >= 1
+        return (device.read(order, np.uint32, n), device.read(tree["bvh_children"], np.uint32, 2 * (n - 1)).reshape(-1, 2),
+                device.read(tree["bvh_ranges"], np.uint32, 2 * (n - 1)).reshape(-1, 2),
+                device.read(tree["bvh_parents"], np.uint32, 2 * n - 1))
     finally:
         for b in (order, *tree.values(), *sb.values()):
             device.release(b)
-    assert rounds >= 1
+
+
+def test_the_binned_hierarchy_bins_in_batches_as_at_once(device, monkeypatch):
+    """Where a level's large nodes' bins overflow one buffer they are binned in batches
+    (bvh.sah_batch): one node at a time gives the same tree, bit for bit."""
+    scene = _subset(load_scene("spheres"), 600)
+    whole = _binned_tree(device, scene)
+    monkeypatch.setattr(bvh, "sah_batch", lambda device, most: 1)
+    for name, a, b in zip(("order", "children", "ranges", "parents"), whole, _binned_tree(device, scene)):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+@pytest.mark.parametrize("scene_name", ["spheres", "awkward"])
+def test_the_binned_hierarchy_splits_at_the_least_cost_boundary(device, scene_name):
+    """Build 3, "binned", on its own (bvh.binned_hierarchy) against a numpy reference: a binary
+    tree over ranges of a permutation, named as Karras names them (the fit reads it as EMIT's);
+    every split separates its children's centroids by a plane, and costs no more than the best
+    boundary of the reference's bins (32 per axis from 64 triangles up, else 16: the centroids'
+    extent divided in float32 as bvh.h does), SA(L) n_L + SA(R) n_R; where all centroids
+    coincide it splits at half."""
+    scene = _subset(load_scene("spheres"), 600) if scene_name == "spheres" else _awkward_scene()
+    n = scene.triangle_count
+    order_np, children, ranges, parents = _binned_tree(device, scene)
     assert np.array_equal(np.sort(order_np), np.arange(n, dtype=np.uint32)), "voxel_tris is no permutation"
     prim = np.uint32(0x80000000)
     t = scene.triangles.astype(np.float32)[order_np]

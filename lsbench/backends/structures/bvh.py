@@ -353,7 +353,7 @@ def binned_hierarchy(device: Device, scene_buffers: dict, n_tris: int, uniforms:
         scan = temp("sah_scan", 4 * (n + 1))
         root = temp("sah_root", 4, zero=True)
         cut = temp("sah_cut", 4, zero=True)
-        batch = max(1, min(most, device.max_buffer_bytes // SAH_BIN_BYTES))
+        batch = sah_batch(device, most)
         bins, cbounds = temp("sah_bins", SAH_BIN_BYTES * batch), temp("sah_cbounds", 24 * batch)
         whole = np.array([0, n - 1, 0xFFFFFFFF, 0], np.uint32)  # the root: first, last, parent, side
         if n >= SAH_LARGE:
@@ -403,6 +403,11 @@ def binned_hierarchy(device: Device, scene_buffers: dict, n_tris: int, uniforms:
         if b is not order:
             device.release(b)
     return order, rounds
+
+
+def sah_batch(device: Device, most: int) -> int:
+    """The large nodes binned at once: all `most` of a level where their bins fit one buffer."""
+    return max(1, min(most, device.max_buffer_bytes // SAH_BIN_BYTES))
 
 
 def check_hierarchy(value: str) -> str:
