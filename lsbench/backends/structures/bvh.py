@@ -31,8 +31,8 @@ on scene.h and trace.h. All steps run on the device, written once for both backe
    The SAH cost of the tree after each stage is in the stats: `sah_cost_plain` (the plain LBVH:
    every node of at most leaf_size triangles a leaf), `sah_cost_collapse` (SAH leaves) and
    `sah_cost` (as built), so every build measures the gain; the device time of each kernel is in
-   `build_kernel_seconds` (OpenCL). Sponza's Morton tree (262k triangles, leaf size 8, PoCL on 2 shared cores):
-   SAH cost 177 -> 164 -> 102, binary node visits per primary ray 141 -> 69, about +40 % rays/s,
+   `build_kernel_seconds` (OpenCL). Sponza's Morton tree (262k triangles, leaf size 8, PoCL on 2
+   shared cores): SAH cost 177 -> 164 -> 102, binary node visits per primary ray 141 -> 69, about +40 % rays/s,
    for 0.34 s of restructuring (6 rounds; 3 rounds: SAH 107 in 0.15 s). options["bvh_quality"]
    (QUALITIES) stops after a stage.
 6. Compaction: the inner nodes that stay nodes are flagged (not collapsed into a leaf), those at
@@ -87,16 +87,17 @@ Temporary buffers (released after the build): binned, a second order and two per
 indices (4 bytes each per triangle), the sides' scan, a list of small nodes (8 bytes per
 triangle) and the large nodes' lists, choices and bins (one 2.7 KiB set of bins per node of a
 batch, at most one per SAH_LARGE triangles); morton, keys and ids twice (ping-pong sort), digit
-counts (32 per chunk of SORT_CHUNK keys); both: children, ranges, parents, arrival counters, collapse flags,
-triangle counts, two costs (4 bytes each per node or primitive) and the fitted boxes (32 bytes per
-inner node).
+counts (32 per chunk of SORT_CHUNK keys); both: children, ranges, parents, arrival counters,
+collapse flags, triangle counts, two costs (4 bytes each per node or primitive) and the fitted
+boxes (32 bytes per inner node).
 
 Limits: triangle ids and leaf offsets are 31-bit (bit 31 marks a primitive during the build), so a
 scene of 2^31 triangles or more fails naming it; every buffer is checked against the driver's
 per-buffer limit at allocation (llvmpipe 128 MiB: 2.1 M quantized 4-wide nodes of 64 bytes, ~16 M
 triangles for the binned build's list of small nodes, 8 bytes per triangle, ~30 M for the Morton
-sort's buffers; a level's large nodes whose bins overflow one buffer are binned in batches); the traversal's leaf entries address a slot as 4 * record + slot in
-31 bits; leaves hold at most 255 triangles (LEAF_SIZES: the quantized layout counts them in a byte)."""
+sort's buffers; a level's large nodes whose bins overflow one buffer are binned in batches); the
+traversal's leaf entries address a slot as 4 * record + slot in 31 bits; leaves hold at most 255
+triangles (LEAF_SIZES: the quantized layout counts them in a byte)."""
 from __future__ import annotations
 
 import dataclasses
