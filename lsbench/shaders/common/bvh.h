@@ -232,7 +232,7 @@ INLINE Box bvh_child_box(CTX_PARAM uint c) {
 // named as Karras names them: by the position of its split (the last position of its left child),
 // except the root, which is node 0 and gives its own split's name to the node whose split is at 0.
 // So the buffers the fit reads (children, ranges, parents) are the same as EMIT's, and every
-// atomic here is order-free (counts, maxima): the tree is the same on every run and device.
+// atomic here is order-free (counts, maxima): the tree is the same on every run.
 #define BVH_SAH_BINS 32u        // bins per axis, nodes of at least BVH_SAH_LARGE triangles
 #define BVH_SAH_SMALL_BINS 16u  // bins per axis, the nodes each work item builds whole
 #define BVH_SAH_LARGE 64u       // must match bvh.py SAH_LARGE
