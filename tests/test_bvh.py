@@ -228,12 +228,8 @@ def test_morton_codes_are_sorted_stably(device):
     """Build steps 1-2 on their own: the device's codes match a numpy float32 reference and the
     radix sort returns them in the order of numpy's stable argsort."""
     scene = _subset(load_scene("spheres"), 700)  # 3 sort chunks of 256
-    geometry = backends.geometry_for("bvh", scene, BuildParams(resolution=(1, 1, 1)))
-    bvh.prepare(device)
-    sb = {"vertices": device.upload("vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
-          "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
     n = scene.triangle_count
-    u = dict(geometry.uniforms(), bvh_n=n, bvh_leaf_size=1, bvh_sah=1, bvh_node_count=0)
+    geometry, sb, u = _build_inputs(device, scene)
     keys, ids = bvh.sort_by_morton_code(device, sb, n, u)
     try:
         keys_np = device.read(keys, np.uint32, n)
@@ -264,16 +260,23 @@ def _awkward_scene():
     return Scene("awkward", v, np.arange(len(v), dtype=np.uint32).reshape(-1, 3), "test:awkward")
 
 
-def _binned_tree(device, scene):
-    """bvh.binned_hierarchy on its own: (order, children, ranges, parents) as numpy arrays."""
-    n = scene.triangle_count
+def _build_inputs(device, scene):
+    """What a build step run on its own takes: the geometry, the scene's vertex and face buffers
+    (the caller releases them) and the build's uniforms."""
     geometry = backends.geometry_for("bvh", scene, BuildParams(resolution=(1, 1, 1)))
     bvh.prepare(device)
     sb = {"vertices": device.upload("vertices", np.ascontiguousarray(scene.vertices, np.float32).ravel()),
           "faces": device.upload("faces", np.ascontiguousarray(scene.faces, np.uint32).ravel())}
+    u = dict(geometry.uniforms(), bvh_n=scene.triangle_count, bvh_leaf_size=1, bvh_sah=1, bvh_node_count=0)
+    return geometry, sb, u
+
+
+def _binned_tree(device, scene):
+    """bvh.binned_hierarchy on its own: (order, children, ranges, parents) as numpy arrays."""
+    n = scene.triangle_count
+    _, sb, u = _build_inputs(device, scene)
     tree = {"bvh_children": device.alloc("bvh_children", 8 * (n - 1)),
             "bvh_ranges": device.alloc("bvh_ranges", 8 * (n - 1)), "bvh_parents": device.alloc("bvh_parents", 4 * (2 * n - 1))}
-    u = dict(geometry.uniforms(), bvh_n=n, bvh_leaf_size=1, bvh_sah=1, bvh_node_count=0)
     order, rounds = bvh.binned_hierarchy(device, sb, n, u, tree)
     try:
         assert rounds >= 1

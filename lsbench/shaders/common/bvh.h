@@ -251,6 +251,20 @@ INLINE float bvh_unordered(uint k) { return as_float((k & 0x80000000u) != 0u ? (
 // a stale read errs towards the atomic): once a node's bounds settle, most triangles leave its
 // cache lines unwritten (Sponza's top nodes: every triangle's 21 atomics on the same 96 bins).
 #define BVH_RAISE(lvalue, v) if ((lvalue) < (v)) ATOMIC_MAX(lvalue, v);
+// A box kept in words w .. w + 5 of buffer BUF (lo complemented, then hi) grown to hold lo..hi;
+// bvh_ordered_box reads it back.
+#define BVH_RAISE_BOX(BUF, w, lo, hi)                                                              \
+    BVH_RAISE(V(BUF)[(w)], ~bvh_ordered((lo).x)) BVH_RAISE(V(BUF)[(w) + 1u], ~bvh_ordered((lo).y))   \
+    BVH_RAISE(V(BUF)[(w) + 2u], ~bvh_ordered((lo).z)) BVH_RAISE(V(BUF)[(w) + 3u], bvh_ordered((hi).x)) \
+    BVH_RAISE(V(BUF)[(w) + 4u], bvh_ordered((hi).y)) BVH_RAISE(V(BUF)[(w) + 5u], bvh_ordered((hi).z))
+INLINE Box bvh_ordered_box(uint lx, uint ly, uint lz, uint hx, uint hy, uint hz) {
+    Box b;
+    b.lo = make_float3(bvh_unordered(~lx), bvh_unordered(~ly), bvh_unordered(~lz));
+    b.hi = make_float3(bvh_unordered(hx), bvh_unordered(hy), bvh_unordered(hz));
+    return b;
+}
+#define BVH_LOAD_BOX(BUF, w) bvh_ordered_box(V(BUF)[(w)], V(BUF)[(w) + 1u], V(BUF)[(w) + 2u], \
+                                             V(BUF)[(w) + 3u], V(BUF)[(w) + 4u], V(BUF)[(w) + 5u])
 
 INLINE float bvh_axis(float3 v, uint a) { return a == 0u ? v.x : (a == 1u ? v.y : v.z); }
 
@@ -345,14 +359,7 @@ INLINE uint bvh_sah_batch_slot(CTX_PARAM uint p) {
 
 #if defined(KERNEL_bvh_sah_bin) || defined(KERNEL_bvh_sah_choose)
 // The centroids' bounds of the node in batch slot j (bvh_sah_centroids_kernel).
-INLINE Box bvh_sah_centroid_bounds(CTX_PARAM uint j) {
-    Box b;
-    b.lo = make_float3(bvh_unordered(~V(sah_cbounds)[6u * j]), bvh_unordered(~V(sah_cbounds)[6u * j + 1u]),
-                       bvh_unordered(~V(sah_cbounds)[6u * j + 2u]));
-    b.hi = make_float3(bvh_unordered(V(sah_cbounds)[6u * j + 3u]), bvh_unordered(V(sah_cbounds)[6u * j + 4u]),
-                       bvh_unordered(V(sah_cbounds)[6u * j + 5u]));
-    return b;
-}
+INLINE Box bvh_sah_centroid_bounds(CTX_PARAM uint j) { return BVH_LOAD_BOX(sah_cbounds, 6u * j); }
 #endif
 
 #ifdef KERNEL_bvh_sah_centroids
@@ -361,12 +368,7 @@ INLINE void bvh_sah_centroids_kernel(CTX_PARAM uint p) {
     uint j = bvh_sah_batch_slot(CTX_ARG p);
     if (j == BVH_NONE) return;
     float3 c = bvh_sah_centroid(bvh_sah_tri_box(CTX_ARG p));
-    BVH_RAISE(V(sah_cbounds)[6u * j], ~bvh_ordered(c.x))
-    BVH_RAISE(V(sah_cbounds)[6u * j + 1u], ~bvh_ordered(c.y))
-    BVH_RAISE(V(sah_cbounds)[6u * j + 2u], ~bvh_ordered(c.z))
-    BVH_RAISE(V(sah_cbounds)[6u * j + 3u], bvh_ordered(c.x))
-    BVH_RAISE(V(sah_cbounds)[6u * j + 4u], bvh_ordered(c.y))
-    BVH_RAISE(V(sah_cbounds)[6u * j + 5u], bvh_ordered(c.z))
+    BVH_RAISE_BOX(sah_cbounds, 6u * j, c, c)
 }
 #endif
 
@@ -383,26 +385,12 @@ INLINE void bvh_sah_bin_kernel(CTX_PARAM uint p) {
         uint i = bvh_sah_bin(bvh_axis(c, a), lo, bvh_sah_scale(lo, bvh_axis(cb.hi, a), BVH_SAH_BINS), BVH_SAH_BINS);
         uint w = ((3u * j + a) * BVH_SAH_BINS + i) * BVH_SAH_BIN_WORDS;
         ATOMIC_ADD(V(sah_bins)[w], 1u);
-        BVH_RAISE(V(sah_bins)[w + 1u], ~bvh_ordered(t.lo.x))
-        BVH_RAISE(V(sah_bins)[w + 2u], ~bvh_ordered(t.lo.y))
-        BVH_RAISE(V(sah_bins)[w + 3u], ~bvh_ordered(t.lo.z))
-        BVH_RAISE(V(sah_bins)[w + 4u], bvh_ordered(t.hi.x))
-        BVH_RAISE(V(sah_bins)[w + 5u], bvh_ordered(t.hi.y))
-        BVH_RAISE(V(sah_bins)[w + 6u], bvh_ordered(t.hi.z))
+        BVH_RAISE_BOX(sah_bins, w + 1u, t.lo, t.hi)
     }
 }
 #endif
 
 #ifdef KERNEL_bvh_sah_choose
-INLINE Box bvh_sah_bin_box(CTX_PARAM uint w) {
-    Box b;
-    b.lo = make_float3(bvh_unordered(~V(sah_bins)[w + 1u]), bvh_unordered(~V(sah_bins)[w + 2u]),
-                       bvh_unordered(~V(sah_bins)[w + 3u]));
-    b.hi = make_float3(bvh_unordered(V(sah_bins)[w + 4u]), bvh_unordered(V(sah_bins)[w + 5u]),
-                       bvh_unordered(V(sah_bins)[w + 6u]));
-    return b;
-}
-
 // Per large node of the batch: the split of least cost over the three axes' bins (ties: the lower
 // axis, then the lower bin), kept with the axis' bin origin and scale for the sides' kernel.
 INLINE void bvh_sah_choose_kernel(CTX_PARAM uint j) {
@@ -413,7 +401,7 @@ INLINE void bvh_sah_choose_kernel(CTX_PARAM uint j) {
     for (uint a = 0u; a < 3u; ++a) {
         uint base = 3u * j + a;
 #define BVH_SAH_BIN_COUNT(i) V(sah_bins)[(base * BVH_SAH_BINS + (i)) * BVH_SAH_BIN_WORDS]
-#define BVH_SAH_BIN_BOX(i) bvh_sah_bin_box(CTX_ARG (base * BVH_SAH_BINS + (i)) * BVH_SAH_BIN_WORDS)
+#define BVH_SAH_BIN_BOX(i) BVH_LOAD_BOX(sah_bins, (base * BVH_SAH_BINS + (i)) * BVH_SAH_BIN_WORDS + 1u)
         BVH_SAH_SWEEP(BVH_SAH_BINS, BVH_SAH_BIN_COUNT, BVH_SAH_BIN_BOX, a)
 #undef BVH_SAH_BIN_COUNT
 #undef BVH_SAH_BIN_BOX
