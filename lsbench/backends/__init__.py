@@ -485,11 +485,11 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     order = trace_order(built, rays, width, budget, refill)[0]
-    cut = _refill_key(rays)
-    if refill > 1 and cut in built.refill_cut:  # the order's probe saw the loop budget cut it
+    key = _refill_key(rays)
+    if refill > 1 and key in built.refill_cut:  # the order's probe saw the loop budget cut it
         return time_trace(built, rays, warmup, repeats, between, budget)
     timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
-    if refill > 1 and cut in built.refill_cut:  # the timed launches saw it: one ray per item
+    if refill > 1 and key in built.refill_cut:  # the timed launches saw it: one ray per item
         return time_trace(built, rays, warmup, repeats, between, budget)
     return timing
 
