@@ -85,6 +85,26 @@ def test_classifier_accepts_a_grazing_hit_at_its_distance_but_not_a_wrong_one():
     assert far["unexplained"] == [0]
 
 
+def test_classifier_accepts_a_grazed_vertex_at_its_distance_but_not_a_wrong_one():
+    """The mirror case of the test above: the ray passes 1e-8 outside the apex of a sliver nearly
+    parallel to it (cosine 7e-3), so the float64 ray misses it, and a float32 test meets it at the
+    apex with its distance off by 2e-5 (its rounding divided by the small determinant: probe2's fan
+    of 3,000 slivers sharing a vertex, every structure on both backends), a point farther from the
+    triangle than pos_eps. It is the triangle the ray grazes, at the distance where it grazes it,
+    within the tolerance a robust hit gets: acceptable. 5e-2 beyond the apex is not, nor a miss of
+    the wall behind."""
+    v = np.float32([[0, 0, 0], [0.07, -1, 10], [0.07, 1, 10], [-5, -5, 20], [5, -5, 20], [0, 5, 20]])
+    scene = Scene("sliver", v, np.uint32([[0, 1, 2], [3, 4, 5]]), "test")
+    rays = RaySet("apex", np.float32([[-1e-8, 0, -5]]), np.float32([[0, 0, 1]]))
+    wall = np.array([1]), np.array([25.0], np.float32)
+    ok = classify(scene, rays, np.array([0]), np.array([5.0 - 2e-5], np.float32), *wall)
+    assert ok["unexplained"] == [] and ok["labels"][0] == "grazing", ok["labels"]
+    far = classify(scene, rays, np.array([0]), np.array([5.05], np.float32), *wall)
+    assert far["unexplained"] == [0]
+    miss = classify(scene, rays, np.array([-1]), np.array([np.inf], np.float32), *wall)
+    assert miss["unexplained"] == [0]
+
+
 def test_classifier_catches_a_leak_and_a_wrong_hit():
     """The tie rules must not excuse real errors: a ray through the shared diagonal of a quad
     that hits nothing, and a hit on a triangle behind the nearest one."""
