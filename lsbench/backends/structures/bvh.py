@@ -439,12 +439,13 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         raise ValueError("bvh: the scene has no triangles")
     inner = n_tris - 1
     u = dict(geometry.uniforms(), bvh_n=n_tris, bvh_leaf_size=leaf_size, bvh_sah=int(sah), bvh_node_count=0)
-    if hierarchy == "morton" or inner == 0:
-        keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
-        temps = [keys]
+    # One triangle has no hierarchy to build: the Morton path's sort gives its one-entry order.
+    binned = hierarchy == "binned" and inner > 0
+    if binned:
+        keys, tris, temps, made = None, None, [], []
     else:
-        keys, tris, temps = None, None, []
-    made = [tris] if tris is not None else []
+        keys, tris = sort_by_morton_code(device, scene_buffers, n_tris, u)
+        temps, made = [keys], [tris]
     try:
         def temp(name, nbytes, zero=False):
             buf = device.alloc(name, nbytes, zero=zero)
@@ -455,7 +456,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         ranges = temp("bvh_ranges", 8 * inner)
         parents = temp("bvh_parents", 4 * (inner + n_tris))
         stats: dict = {"triangles": n_tris, "leaf_size": leaf_size, "quality_pass": quality, "hierarchy": hierarchy}
-        if keys is None:
+        if binned:
             tris, stats["hierarchy_rounds"] = binned_hierarchy(
                 device, scene_buffers, n_tris, u, {"bvh_children": children, "bvh_ranges": ranges, "bvh_parents": parents})
             made.append(tris)
@@ -467,7 +468,7 @@ def build_bvh(device: Device, scene_buffers: dict, n_tris: int, geometry: GridGe
         counts = temp("bvh_counts", 4 * inner)
         fit_bufs["bvh_counts"] = counts
         if inner > 0:
-            if keys is not None:
+            if not binned:
                 device.dispatch(EMIT, inner, {"bvh_keys": keys, "bvh_children": children, "bvh_ranges": ranges,
                                               "bvh_parents": parents}, u)
                 temps.remove(keys)
