@@ -435,10 +435,59 @@ def _run_slices(d: Device, spec, n: int, bufs: dict, uniforms: dict, budget: int
     return slices
 
 
+# The bytes a trace keeps per ray in its widest buffer (_trace_buffers): the ray's two float4, or in
+# bounded slices its slice state, 4 * (SLICE_WORDS + 1). A buffer may not exceed the driver's
+# per-buffer limit (llvmpipe: 128 MiB), so llvmpipe held at most 1.97 M rays in slices, and a
+# 1920 x 1080 image (2.07 M) failed there; ray_parts splits such a set.
+RAY_BYTES = 32
+SLICED_RAY_BYTES = 4 * (SLICE_WORDS + 1)
+
+
+def rays_per_part(device: Device, budget: int | None) -> int:
+    """The most rays one trace's buffers hold on `device` (budget: the trace's slice budget, None
+    for one launch)."""
+    return max(1, device.max_buffer_bytes // (SLICED_RAY_BYTES if budget is not None else RAY_BYTES))
+
+
+def ray_parts(rays, most: int) -> list:
+    """The ray set as consecutive parts of at most `most` rays, traced one after the other. An
+    image splits into whole rows of RAY_TILE-pixel tiles, so each part's launch order (its tiles)
+    is the image's, and the SIMD groups of the parts are those of the whole image (simd_fields);
+    an image too wide for one row of tiles, and every other set, into plain ranges."""
+    n = rays.count
+    if n <= most:
+        return [rays]
+    if launch_order(rays) is not None and most >= RAY_TILE * rays.width:
+        rows = most // (RAY_TILE * rays.width) * RAY_TILE
+        return [rays.part(r * rays.width, min(r + rows, rays.height) * rays.width) for r in range(0, rays.height, rows)]
+    return [rays.part(s, min(s + most, n)) for s in range(0, n, most)]
+
+
+def _joined(parts: list) -> Hits:
+    """The Hits of a trace in parts (ray_parts), in the ray set's order: the launches summed, the
+    choices per part (packets, refill, order) where the parts agree, else the largest or all."""
+    if len(parts) == 1:
+        return parts[0]
+    orders = sorted({h.order for h in parts})
+    work = None if parts[0].work is None else np.concatenate([h.work for h in parts])
+    return Hits(np.concatenate([h.prim_ids for h in parts]), np.concatenate([h.distances for h in parts]), work=work,
+                slices=sum(h.slices for h in parts), slice_budget=parts[0].slice_budget,
+                packet=max(h.packet for h in parts), refill=max(h.refill for h in parts), order="+".join(orders),
+                order_probe=None if all(h.order_probe is None for h in parts) else {
+                    "parts": [h.order_probe for h in parts]})
+
+
 def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     """The hit of every ray for the ray set's query (rays.query: closest, or any hit in
     [tmin, tmax)); work=True runs the profiling kernel with per-ray counters. `budget`: loop
-    iterations per ray and launch (slice_budget: the device's unless given)."""
+    iterations per ray and launch (slice_budget: the device's unless given). A set whose buffers
+    would exceed the driver's per-buffer limit is traced in parts (ray_parts)."""
+    parts = ray_parts(rays, rays_per_part(built.device, _walk_budget(built, budget)))
+    return _joined([_trace_part(built, part, work, budget) for part in parts])
+
+
+def _trace_part(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
+    """trace() of a set that fits the trace's buffers."""
     d = built.device
     spec = for_query(built.trace_spec, rays.query)
     spec = with_work_counters(spec, d) if work else spec
@@ -447,7 +496,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     ordered, probe = trace_order(built, rays, width, budget, refill)
     if refill > 1 and _refill_key(rays) in built.refill_cut:  # the order's probe saw a cut
-        return trace(built, rays, work, budget)
+        return _trace_part(built, rays, work, budget)
     before = _sort_steps(built, rays, ordered)
     bufs = _trace_buffers(built, rays, work, ordered, refill)
     try:
@@ -467,7 +516,7 @@ def trace(built: Built, rays, work: bool = False, budget=DEVICE_BUDGET) -> Hits:
     if cut and refill > 1:
         # a lane's rays share the SIMD group's loop budget: one ray per work item from now on
         built.refill_cut.add(_refill_key(rays))
-        return trace(built, rays, work, budget)
+        return _trace_part(built, rays, work, budget)
     if cut:
         raise d.loop_limit_error(f"the traversal loops of {cut} of {rays.count} rays: they meet more "
                                  "candidates than that (a finer resolution or a Line Space cuts them)")
@@ -480,17 +529,37 @@ def time_trace(built: Built, rays, warmup: int = 1, repeats: int = 5, between=No
     launches not counted; `between()` runs after each timed launch, untimed (Device.time_dispatch).
     In bounded slices (slice_budget) a timed trace is all its slices, their device times summed,
     warm-up traces and `between()` around whole traces; in a sorted order (trace_order) the sort's
-    launches are in it too."""
+    launches are in it too. A set traced in parts (ray_parts) is timed part after part, each
+    repeat the sum of its parts' times, `between()` after the last part of each."""
+    parts = ray_parts(rays, rays_per_part(built.device, _walk_budget(built, budget)))
+    if len(parts) == 1:
+        return _time_part(built, rays, warmup, repeats, between, budget)
+    seconds, clocks = [], []
+    for i in range(repeats):
+        timings = [_time_part(built, part, warmup if i == 0 else 0, 1, None, budget) for part in parts]
+        seconds.append(sum(t.seconds[0] for t in timings))
+        for t in timings:
+            if t.clock not in clocks:
+                clocks.append(t.clock)
+        if between is not None:
+            between()
+    return Timing(seconds, "; ".join(clocks) + f", summed over {len(parts)} parts of at most "
+                  f"{max(p.count for p in parts)} rays (the driver's per-buffer limit)")
+
+
+def _time_part(built: Built, rays, warmup: int = 1, repeats: int = 5, between=None,
+               budget=DEVICE_BUDGET) -> Timing:
+    """time_trace() of a set that fits the trace's buffers."""
     budget = _walk_budget(built, budget)
     width = packet_width(built, rays, budget)
     refill = refill_rays(built, rays, budget) if width == 1 else 1
     order = trace_order(built, rays, width, budget, refill)[0]
     key = _refill_key(rays)
     if refill > 1 and key in built.refill_cut:  # the order's probe saw the loop budget cut it
-        return time_trace(built, rays, warmup, repeats, between, budget)
+        return _time_part(built, rays, warmup, repeats, between, budget)
     timing = _timed_trace(built, rays, width, budget, order, warmup, repeats, between, refill)
     if refill > 1 and key in built.refill_cut:  # the timed launches saw it: one ray per item
-        return time_trace(built, rays, warmup, repeats, between, budget)
+        return _time_part(built, rays, warmup, repeats, between, budget)
     return timing
 
 

@@ -65,6 +65,21 @@ class RaySet:
             return np.full(self.count, np.inf, np.float32)
         return np.asarray(self.tmax, np.float32)
 
+    def part(self, start: int, stop: int) -> "RaySet":
+        """Rays [start, stop) as a set of their own: the same name, query, tmin and parameters. A
+        part of an image that is whole rows stays an image of those rows; any other part is not
+        an image (width = height = 0)."""
+        start, stop = max(0, int(start)), min(self.count, int(stop))
+        if not start < stop:
+            raise ValueError(f"a part of a ray set needs start < stop within its {self.count} rays, "
+                             f"got [{start}, {stop})")
+        image = (self.width > 0 and self.width * self.height == self.count
+                 and start % self.width == 0 and stop % self.width == 0)
+        return RaySet(name=self.name, origins=self.origins[start:stop], directions=self.directions[start:stop],
+                      width=self.width if image else 0, height=(stop - start) // self.width if image else 0,
+                      tmin=self.tmin, tmax=None if self.tmax is None else self.tmax[start:stop],
+                      query=self.query, params=dict(self.params))
+
     @property
     def content_hash(self) -> str:
         """Hash of the float32 origins and directions, and of tmax when the set has one (sets
