@@ -423,15 +423,15 @@ def test_hits_agree_with_embree(device, structure, scene_name):
         built.release()
 
 
-@pytest.mark.parametrize("width", [8, 16])
-def test_packets_find_the_single_ray_hits(monkeypatch, width):
-    """The packet traversal (OpenCL: `width` rays per work item, shaders/common/bvh.h BVH_PACKET)
-    against the single-ray kernel and Embree: a ray count that leaves the last packet part empty,
-    rays from inside the scene in every direction (lanes with different dominant axes), rays with a
-    tmin and a per-ray tmax, and any-hit shadow rays. The same closest distance per ray; another
-    triangle only at a tie (a box entry rounded past the hit leaves the single ray's walk one tie
-    short), which Embree's check explains."""
-    device = backends.get_device("opencl")
+@pytest.mark.parametrize("backend,width", [("opencl", 8), ("opencl", 16), ("glsl", 4)])
+def test_packets_find_the_single_ray_hits(monkeypatch, backend, width):
+    """The packet traversal (`width` rays per work item, shaders/common/bvh.h BVH_PACKET: OpenCL's
+    float8 / float16 lanes, GLSL's vec4) against the single-ray kernel and Embree: a ray count that
+    leaves the last packet part empty, rays from inside the scene in every direction (lanes with
+    different dominant axes), rays with a tmin and a per-ray tmax, and any-hit shadow rays. The
+    same closest distance per ray; another triangle only at a tie (a box entry rounded past the hit
+    leaves the single ray's walk one tie short), which Embree's check explains."""
+    device = backends.get_device(backend)
     scene = load_scene("atrium")
     built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
     lo, hi = scene.bounds
@@ -465,22 +465,23 @@ def test_packets_find_the_single_ray_hits(monkeypatch, width):
         built.release()
 
 
+@pytest.mark.parametrize("backend,width", [("opencl", 8), ("glsl", 4)])
 @pytest.mark.parametrize("scene_name", ["cornell", "spheres"])
-def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name):
+def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name, backend, width):
     """Adversarial rays (along edges and faces, through vertices, grazing) forced into packets: a
     lane may now test triangles its own walk's boxes ruled out (a box face the ray lies in), and
     every answer must still be one Embree's check explains (the grazing-vertex distance of
     geometry.h's triangle_plane_t came from here)."""
-    monkeypatch.setenv("LSBENCH_PACKET", "8")
+    monkeypatch.setenv("LSBENCH_PACKET", str(width))
     scene = load_scene(scene_name)
-    out = check_structure(backends.get_device("opencl"), "bvh", scene, (1, 1, 1))
-    assert out["hits"].packet == 8 and out["unexplained"] == [], explain(out)
+    out = check_structure(backends.get_device(backend), "bvh", scene, (1, 1, 1))
+    assert out["hits"].packet == width and out["unexplained"] == [], explain(out)
 
 
 def test_packets_for_coherent_rays_on_cpu_devices_refills_for_rays_without_locality(device, monkeypatch):
     """backends.packet_width: primary rays go in packets on PoCL (a CPU device, Device.packet_width
-    8); incoherent and ambient-occlusion rays, GLSL (no packet kernel),
-    a sliced trace and structures without a packet traversal take one ray per work item.
+    8) and llvmpipe (4 per SIMD lane); incoherent and ambient-occlusion rays, llvmpipe's any-hit
+    rays, GPUs, a sliced trace and structures without a packet traversal take one ray per work item.
     backends.refill_rays: incoherent rays (no locality) are refilled where work items run in SIMD
     lanes (llvmpipe), REFILL_RAYS per work item; an image's rays, secondary
     rays from primary hits, PoCL (work items one at a time), a sliced trace and structures without
@@ -496,12 +497,15 @@ def test_packets_for_coherent_rays_on_cpu_devices_refills_for_rays_without_local
         incoherent = make_rays("incoherent", scene, 32, 32, None, {})
         ao = make_rays("ao", scene, 32, 32, None, {"samples": 4})
         assert backends.ray_coherence(primary, 8) > backends.PACKET_MIN_COHERENCE > backends.ray_coherence(ao, 8)
-        cpu = device.backend == "opencl" and device.packet_width == 8
-        expect = 8 if cpu else 1
+        expect = {"opencl": 8, "glsl": 4}[device.backend] if device.serial_work_items or getattr(device, "is_llvmpipe", False) else 1
+        assert device.packet_width == expect
         assert backends.packet_width(built, primary, None) == expect
         assert backends.packet_width(built, incoherent, None) == 1
         assert backends.packet_width(built, ao, None) == 1
         assert backends.packet_width(built, primary, 1000) == 1  # bounded slices: one ray per item
+        shadow = make_rays("shadow", scene, 32, 32, None, {})  # any hit: packets on PoCL only
+        if "any" not in device.packet_queries:
+            assert backends.packet_width(built, shadow, None) == 1
         assert backends.packet_width(grid_built, primary, None) == 1
         assert backends.trace(built, primary).packet == expect
         refill = 1 if device.serial_work_items else backends.REFILL_RAYS
@@ -515,8 +519,9 @@ def test_packets_for_coherent_rays_on_cpu_devices_refills_for_rays_without_local
         monkeypatch.setenv("LSBENCH_REFILL", "0")
         with pytest.raises(ValueError, match="LSBENCH_REFILL must be auto or a whole number of rays >= 1, got '0'"):
             backends.trace(built, incoherent)
-        monkeypatch.setenv("LSBENCH_PACKET", "4")
-        with pytest.raises(ValueError, match="LSBENCH_PACKET must be one of auto, 1, 8, 16, got '4'"):
+        monkeypatch.setenv("LSBENCH_PACKET", "4" if device.backend == "opencl" else "8")
+        allowed = "auto, 1, 8, 16 on opencl, got '4'" if device.backend == "opencl" else "auto, 1, 4 on glsl, got '8'"
+        with pytest.raises(ValueError, match=f"LSBENCH_PACKET must be one of {allowed}"):
             backends.trace(built, primary)
     finally:
         built.release()
@@ -730,7 +735,7 @@ def test_leaf_entries_that_hold_their_range_find_what_cell_entries_find(device, 
             assert defines["BVH_LEAF_RANGE_BITS"] == str(leaf_size.bit_length())
             cells = dataclasses.replace(built, trace_spec=dataclasses.replace(built.trace_spec, defines=tuple(
                 (k, v) for k, v in built.trace_spec.defines if k != "BVH_LEAF_RANGE_BITS")))
-            for packet in ("1", "8") if device.backend == "opencl" else ("1",):
+            for packet in ("1", "8") if device.backend == "opencl" else ("1", "4"):
                 monkeypatch.setenv("LSBENCH_PACKET", packet)
                 for rays in sets:
                     ours, theirs = backends.trace(built, rays, work=True), backends.trace(cells, rays, work=True)

@@ -11,10 +11,12 @@ slices: each launch runs at most that many loop iterations per ray and the unfin
 launched again (shaders/common/trace.h). budget= (or env LSBENCH_SLICE_BUDGET, "none" = unbounded)
 forces a budget on any device, e.g. to test the slices on OpenCL.
 
-Where the device runs work items one at a time on a CPU (Device.packet_width: PoCL) and the rays
-are coherent (packet_width below: primary rays, shadow rays to a light), a structure with a packet
-traversal (bvh) traces a packet of rays per work item in the vector lanes (shaders/common/bvh.h);
-env LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) decides it by hand.
+Where the device runs work items one at a time on a CPU (Device.packet_width: PoCL, 8) or loads
+each SIMD lane's node on its own (llvmpipe, 4 per lane) and the rays are coherent (packet_width
+below: primary rays, and on PoCL shadow rays to a light), a structure with a packet traversal (bvh)
+traces a packet of rays per work item in the vector lanes (shaders/common/bvh.h); env
+LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) or 4 (GLSL) decides it
+by hand.
 
 A ray set without locality (consecutive rays starting far apart: the incoherent set) is traced in
 the order of its origins' cells, sorted on the device inside the timed trace (ray_order.py; env
@@ -240,24 +242,27 @@ def _measure_coherence(rays, width: int) -> float:
     return float(np.median(np.einsum("gwk,gk->gw", groups, mean).min(axis=1)))
 
 
-PACKET_CHOICES = ("auto", "1", "8", "16")
+# Rays per work item the packet kernel compiles for, per backend (bvh.h: float8 / float16 lanes in
+# OpenCL C, vec4 in GLSL).
+PACKET_WIDTHS = {"opencl": (8, 16), "glsl": (4,)}
 
 
 def packet_width(built: Built, rays, budget: int | None) -> int:
     """Rays per work item for this trace: the device's packet_width where the structure has a
     packet traversal, one launch runs whole rays (no slices) and the rays are coherent
-    (ray_coherence >= PACKET_MIN_COHERENCE); else 1. Env LSBENCH_PACKET (PACKET_CHOICES) overrides
-    the choice on OpenCL devices (GLSL has no packet kernel)."""
-    forced = os.environ.get("LSBENCH_PACKET", "").strip().lower() or "auto"
-    if forced not in PACKET_CHOICES:
-        raise ValueError(f"LSBENCH_PACKET must be one of {', '.join(PACKET_CHOICES)}, got {forced!r}")
+    (ray_coherence >= PACKET_MIN_COHERENCE) and their query is one of the device's packet_queries;
+    else 1. Env LSBENCH_PACKET (auto, 1, or one of the backend's PACKET_WIDTHS) overrides the choice."""
     device = built.device
-    if budget is not None or not structure_info(built.structure).packets or device.backend != "opencl":
+    allowed = ("auto", "1") + tuple(str(w) for w in PACKET_WIDTHS.get(device.backend, ()))
+    forced = os.environ.get("LSBENCH_PACKET", "").strip().lower() or "auto"
+    if forced not in allowed:
+        raise ValueError(f"LSBENCH_PACKET must be one of {', '.join(allowed)} on {device.backend}, got {forced!r}")
+    if budget is not None or not structure_info(built.structure).packets:
         return 1
     if forced != "auto":
         return int(forced)
     width = device.packet_width
-    if width <= 1 or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
+    if width <= 1 or rays.query not in device.packet_queries or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
         return 1
     return width
 

@@ -124,9 +124,13 @@ class Device(abc.ABC):
 
     # Rays per work item of the packet traversals (shaders/common/bvh.h: BVH_PACKET), for coherent ray
     # sets (backends.packet_width): 8 on a CPU device whose work items run one at a time, so that the
-    # kernel's vector types are its only SIMD (PoCL); 1 (a ray per work item) where the driver runs
-    # work items in SIMD lanes itself (llvmpipe, GPUs).
+    # kernel's vector types are its only SIMD (PoCL); 4 on llvmpipe, whose lanes load their nodes
+    # one by one (glsl.py: LLVMPIPE_PACKET_WIDTH); 1 (a ray per work item) on GPUs.
     packet_width: int = 1
+    # The queries whose coherent sets go in packets: both on PoCL (shadow rays to a light 0.75 of the
+    # one-ray time, docs/profiles.md section 8); on llvmpipe closest hits only (any-hit shadow rays
+    # took 1.19-1.24 of it there: a packet's walk ends when its last lane's does).
+    packet_queries: tuple = ("closest", "any")
     # True where the work items of a work group run one after the other on one core (PoCL's CPU
     # device), False where the driver runs them in SIMD lanes (llvmpipe, GPUs): a loop that one work
     # item in 32 runs for its neighbours is cheap on the first and stalls the other lanes on the

@@ -33,6 +33,12 @@ LLVMPIPE_LOOP_BUDGET = 4000
 # lanes). Bounds of at most 1024 voxels take at most 3 x 1024 loop iterations (the z, y and x
 # loops), 16 lanes of them 49,152: within it. The raster pipeline takes the larger ones.
 LLVMPIPE_COMPUTE_VOXEL_CELLS = 1024
+# Rays per work item of the BVH's packet traversal on llvmpipe (bvh.h: BVH_PACKET, vec4 lanes), for
+# coherent ray sets (backends.packet_width): each SIMD lane loads its own node lane by lane
+# (docs/profiles.md, section 10), so a packet of 4 rays per lane shares one node load and one loop
+# step among 4 rays: Sponza 256² primary rays 0.78-0.80 of the one-ray kernel's device time, BMW
+# 256² and 512² 0.83-0.84, the same hits (section 26). Closest hits only (Device.packet_queries).
+LLVMPIPE_PACKET_WIDTH = 4
 HOST_CLOCK = "host clock around glFinish"
 SCAN_BLOCK = 256  # invocations per work group in the prefix-sum kernels (shaders/glsl/scan.comp)
 SCAN_CHUNK = 16  # consecutive items each invocation scans serially
@@ -172,6 +178,9 @@ class GLSLDevice(Device):
         # The most voxels a triangle's bounds may hold for the compute voxelizer to take it
         # (voxelize); None: the raster pipeline takes every triangle.
         self.compute_voxel_cells = LLVMPIPE_COMPUTE_VOXEL_CELLS if self.is_llvmpipe else None
+        # GPUs run a ray per lane: a packet in each lane would only multiply its registers.
+        self.packet_width = LLVMPIPE_PACKET_WIDTH if self.is_llvmpipe else 1
+        self.packet_queries = ("closest",)
 
     # --- information -----------------------------------------------------------------------
     def info(self) -> dict:

@@ -116,9 +116,11 @@ def simd_fields(work: np.ndarray, order: np.ndarray | None, info: dict, packet: 
     from lsbench.backends.structures.base import WORK_CHANNELS
 
     width, source = device_simd_width(info)
-    if packet > 1:
-        width, source = packet, (f"packet traversal: {packet} rays per work item in vector lanes "
-                                 "(shaders/common/bvh.h), each lane counting its packet's work")
+    if packet > 1:  # a SIMD group's work items (PoCL: one) each trace a packet
+        items = width or 1
+        width, source = packet * items, (f"packet traversal: {packet} rays per work item in vector lanes "
+                                         "(shaders/common/bvh.h), each lane counting its packet's work"
+                                         + (f", {items} work items per SIMD group" if items > 1 else ""))
     out: dict = {"simd_width_device": width, "simd_width_source": source}
     for counter, short in COUNTERS.items():
         column = work[:, WORK_CHANNELS.index(counter)] if len(work) else np.zeros(0)

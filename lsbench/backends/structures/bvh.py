@@ -81,7 +81,9 @@ writes are per-lane scatters; Sponza 256² 0.54 (primary) and 0.67 (incoherent) 
 bvh glsl 0.36 -> 0.61-0.64 Mrays/s on primary rays (docs/profiles.md, section 10). There rays
 without locality go 16 per work item, a lane starting its next ray where its last one ended (bvh.h
 BVH_REFILL, backends.refill_rays): Sponza 256² incoherent 0.86-0.93 of the device time, BMW 0.73
-(docs/profiles.md, section 21).
+(docs/profiles.md, section 21). And on llvmpipe, whose lanes load their nodes one by one, coherent
+closest-hit rays go in packets of 4 per lane in vec4 (the same packet code): 0.78-0.84 of the
+one-ray device time on Sponza and BMW primary rays (section 26).
 
 Temporary buffers (released after the build): binned, a second order and two per-position node
 indices (4 bytes each per triangle), the sides' scan, a list of small nodes (8 bytes per

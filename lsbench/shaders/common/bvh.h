@@ -1500,19 +1500,21 @@ INLINE Hit trace_bvh(CTX_PARAM Ray ray, uint id) {
 }
 
 #ifdef BVH_PACKET
-// ---- Packet traversal (BVH_PACKET rays per work item; OpenCL only) ---------------------------
+// ---- Packet traversal (BVH_PACKET rays per work item) -----------------------------------------
 // A CPU OpenCL device (PoCL) runs one work item after the other: a divergent single-ray walk gets
 // no SIMD but the float4 of one node's slots (docs/profiles.md, section 1). Coherent rays (primary,
 // shadow rays to a light) are traced here as packets (Wald, Slusallek, Benthin & Wagner 2001,
 // "Interactive rendering with coherent ray tracing"): the work item carries BVH_PACKET rays in the
-// lanes of float8 / float16, tests each slot's box against all of them at once, enters a slot
-// that any lane's ray hits (nearest first by the smallest lane entry), and tests a leaf's
-// triangles against all lanes, the watertight test's edge functions in the lanes and, for the
-// lanes that may hit, the scalar ray_triangle_wt for the distance. The host picks packets by the
-// rays' coherence (backends.packet_width); a language without vector types of 8 (GLSL) has none.
-#ifndef LANG_OPENCL
-#error "BVH_PACKET: the packet traversal is OpenCL C (vector types of 8 or 16 lanes)"
-#endif
+// lanes of a vector, tests each slot's box against all of them at once, enters a slot that any
+// lane's ray hits (nearest first by the smallest lane entry), and tests a leaf's triangles against
+// all lanes, the watertight test's edge functions in the lanes and, for the lanes that may hit, the
+// scalar ray_triangle_wt for the distance. The host picks packets by the rays' coherence
+// (backends.packet_width). OpenCL: float8 / float16 lanes. GLSL (vec4, 4 rays): for llvmpipe, whose
+// SIMD lanes each load their own node lane by lane (docs/profiles.md, section 10), so that a lane's
+// node loads and loop steps serve 4 rays.
+// The vector dialect the packet code is written in (the preludes have none: only this code compares
+// vectors): PK_* compare to lane masks (intP), combine and pick by them; HREDUCE folds the lanes.
+#if defined(LANG_OPENCL)
 #if BVH_PACKET == 8
 typedef float8 floatP;
 typedef int8 intP;
@@ -1529,7 +1531,40 @@ typedef int16 intP;
 #define HREDUCE(op, v) op(op(HREDUCE4(op, (v).lo), HREDUCE4(op, (v).hi)).x, \
                           op(HREDUCE4(op, (v).lo), HREDUCE4(op, (v).hi)).y)
 #else
-#error "BVH_PACKET must be 8 or 16"
+#error "BVH_PACKET must be 8 or 16 in OpenCL C"
+#endif
+#define VLOADI VLOADP
+#define PK_SPLAT(x) ((floatP)(x))
+#define PK_LT(a, b) ((a) < (b))
+#define PK_GT(a, b) ((a) > (b))
+#define PK_LE(a, b) ((a) <= (b))
+#define PK_EQ(a, b) ((a) == (b))
+#define PK_IEQ(a, k) ((a) == (k))
+#define PK_OR(a, b) ((a) | (b))
+#define PK_AND(a, b) ((a) & (b))
+#define PK_NOT(a) (~(a))
+#define PK_SELECT(a, b, m) select(a, b, m)  // b where the mask is set, else a
+#define PK_STORE_MASK(m, a) { VSTOREP(m, 0, a); }
+#else
+#if BVH_PACKET != 4
+#error "BVH_PACKET must be 4 in GLSL (vec4 lanes)"
+#endif
+#define floatP vec4
+#define intP bvec4
+#define VLOADP(o_, a_) vec4(a_[0], a_[1], a_[2], a_[3])
+#define VLOADI(o_, a_) ivec4(a_[0], a_[1], a_[2], a_[3])
+#define HREDUCE(op, v) op(op((v).x, (v).y), op((v).z, (v).w))
+#define PK_SPLAT(x) vec4(x)
+#define PK_LT(a, b) lessThan(a, b)
+#define PK_GT(a, b) greaterThan(a, b)
+#define PK_LE(a, b) lessThanEqual(a, b)
+#define PK_EQ(a, b) equal(a, b)
+#define PK_IEQ(a, k) equal(a, ivec4(k))
+#define PK_OR(a, b) notEqual(uvec4(a) | uvec4(b), uvec4(0u))
+#define PK_AND(a, b) notEqual(uvec4(a) & uvec4(b), uvec4(0u))
+#define PK_NOT(a) not(a)
+#define PK_SELECT(a, b, m) mix(a, b, m)
+#define PK_STORE_MASK(m, a) { a[0] = int((m).x); a[1] = int((m).y); a[2] = int((m).z); a[3] = int((m).w); }
 #endif
 
 // The packet's rays: lane l is ray gid * BVH_PACKET + l (launch order: rows of the 8 x 8 tiles).
@@ -1550,55 +1585,66 @@ STRUCT(Packet) {
 };
 
 // Component k (0 x, 1 y, 2 z) of each lane, picked by the lane masks of k.
-#define BVH_PICK(x_, y_, z_, k0_, k1_) select(select(z_, y_, k1_), x_, k0_)
+#define BVH_PICK(x_, y_, z_, k0_, k1_) PK_SELECT(PK_SELECT(z_, y_, k1_), x_, k0_)
 
-// A leaf (stack entry e) against every lane: the sheared vertices (wray_vertex) and the edge
-// functions of ray_triangle_wt in the lanes; a lane that the edge values and det do not rule out
-// runs ray_triangle_wt itself for its distance, so a lane hits exactly what its own test hits.
-// prune[l]: lane l's bound of the walk (its closest hit; QUERY_ANY: -inf once it has a hit).
-INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, uint e) {
-    uint2 range = bvh_leaf_range(CTX_ARG e & ~BVH_LEAF);
-    for (uint i = range.x; i < range.y; ++i) {
-        uint tri = V(voxel_tris)[i];
-#ifdef LIST_ORDER_RECORDS
-        TriRecord T = load_candidate(CTX_ARG i);
-#else
-        TriRecord T = load_candidate(CTX_ARG tri);
-#endif
-        floatP pxa = T.a.x - p->ox, pya = T.a.y - p->oy, pza = T.a.z - p->oz;
-        floatP pxb = T.b.x - p->ox, pyb = T.b.y - p->oy, pzb = T.b.z - p->oz;
-        floatP pxc = T.c.x - p->ox, pyc = T.c.y - p->oy, pzc = T.c.z - p->oz;
-        floatP za = BVH_PICK(pxa, pya, pza, p->kz0, p->kz1);
-        floatP zb = BVH_PICK(pxb, pyb, pzb, p->kz0, p->kz1);
-        floatP zc = BVH_PICK(pxc, pyc, pzc, p->kz0, p->kz1);
-        floatP ax = BVH_PICK(pxa, pya, pza, p->kx0, p->kx1) - p->sx * za;
-        floatP ay = BVH_PICK(pxa, pya, pza, p->ky0, p->ky1) - p->sy * za;
-        floatP bx = BVH_PICK(pxb, pyb, pzb, p->kx0, p->kx1) - p->sx * zb;
-        floatP by = BVH_PICK(pxb, pyb, pzb, p->ky0, p->ky1) - p->sy * zb;
-        floatP cx = BVH_PICK(pxc, pyc, pzc, p->kx0, p->kx1) - p->sx * zc;
-        floatP cy = BVH_PICK(pxc, pyc, pzc, p->ky0, p->ky1) - p->sy * zc;
-        floatP u = cx * by - cy * bx;
-        floatP v = ax * cy - ay * cx;
-        floatP w = bx * ay - by * ax;
-        // ray_triangle_wt's misses, lane by lane: edge values of both signs, or det = u + v + w zero
-        intP mixed = ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
-        intP maybe = ~mixed & ~(u + v + w == 0.0f);
+// A leaf (stack entry e_) against every lane of packet pk: the sheared vertices (wray_vertex) and
+// the edge functions of ray_triangle_wt in the lanes; a lane that the edge values and det do not
+// rule out runs ray_triangle_wt itself for its distance, so a lane hits exactly what its own test
+// hits. prune[l]: lane l's bound of the walk (its closest hit; QUERY_ANY: -inf once it has a hit).
+// (A macro over the kernel's tr, prune and pk: GLSL has no pointers to pass them by.) The whole
+// test in the lanes instead, each lane's own call only for triangle_plane_t, was slower on
+// llvmpipe (Sponza 256² primary rays: 1.03 of the one-ray kernel's time against 0.78).
 #ifdef COUNT_WORK
-        for (int l = 0; l < BVH_PACKET; ++l) tr[l].tests += 1u;
-#endif
-        if (!any(maybe)) continue;
-        int m_[BVH_PACKET];
-        VSTOREP(maybe, 0, m_);
-        for (int l = 0; l < p->lanes; ++l) {
-            if (m_[l] == 0) continue;
-            tr[l].best = closer(tr[l].best, ray_triangle_wt(tr[l].wr, T.a, T.b, T.c, T.n), I32(tri), tr[l].tmin);
-#ifdef QUERY_ANY
-            prune[l] = tr[l].best.prim >= 0 ? -INF_F : tr[l].best.t;
+#define BVH_PACKET_COUNT_TEST for (int l = 0; l < BVH_PACKET; ++l) tr[l].tests += 1u;
 #else
-            prune[l] = tr[l].best.t;
+#define BVH_PACKET_COUNT_TEST
 #endif
-        }
-    }
+#ifdef QUERY_ANY
+#define BVH_PACKET_PRUNE(l_) prune[l_] = tr[l_].best.prim >= 0 ? -INF_F : tr[l_].best.t;
+#else
+#define BVH_PACKET_PRUNE(l_) prune[l_] = tr[l_].best.t;
+#endif
+#ifdef LIST_ORDER_RECORDS
+#define BVH_PACKET_RECORD_AT(i_, tri_) load_candidate(CTX_ARG i_)
+#else
+#define BVH_PACKET_RECORD_AT(i_, tri_) load_candidate(CTX_ARG tri_)
+#endif
+#define BVH_PACKET_LEAF(e_) {                                                                   \
+    uint2 range = bvh_leaf_range(CTX_ARG (e_) & ~BVH_LEAF);                                     \
+    for (uint i = range.x; i < range.y; ++i) {                                                  \
+        uint tri = LD_U(voxel_tris, i);                                                         \
+        TriRecord T = BVH_PACKET_RECORD_AT(i, tri);                                             \
+        floatP pxa = T.a.x - pk.ox, pya = T.a.y - pk.oy, pza = T.a.z - pk.oz;                   \
+        floatP pxb = T.b.x - pk.ox, pyb = T.b.y - pk.oy, pzb = T.b.z - pk.oz;                   \
+        floatP pxc = T.c.x - pk.ox, pyc = T.c.y - pk.oy, pzc = T.c.z - pk.oz;                   \
+        floatP za = BVH_PICK(pxa, pya, pza, pk.kz0, pk.kz1);                                    \
+        floatP zb = BVH_PICK(pxb, pyb, pzb, pk.kz0, pk.kz1);                                    \
+        floatP zc = BVH_PICK(pxc, pyc, pzc, pk.kz0, pk.kz1);                                    \
+        floatP ax = BVH_PICK(pxa, pya, pza, pk.kx0, pk.kx1) - pk.sx * za;                       \
+        floatP ay = BVH_PICK(pxa, pya, pza, pk.ky0, pk.ky1) - pk.sy * za;                       \
+        floatP bx = BVH_PICK(pxb, pyb, pzb, pk.kx0, pk.kx1) - pk.sx * zb;                       \
+        floatP by = BVH_PICK(pxb, pyb, pzb, pk.ky0, pk.ky1) - pk.sy * zb;                       \
+        floatP cx = BVH_PICK(pxc, pyc, pzc, pk.kx0, pk.kx1) - pk.sx * zc;                       \
+        floatP cy = BVH_PICK(pxc, pyc, pzc, pk.ky0, pk.ky1) - pk.sy * zc;                       \
+        /* ray_triangle_wt's misses, lane by lane: edge values of both signs, or det zero (the  */ \
+        /* edge values PRECISE as there, so that no lane is ruled out that its own test keeps)  */ \
+        PRECISE floatP u = cx * by - cy * bx;                                                   \
+        PRECISE floatP v = ax * cy - ay * cx;                                                   \
+        PRECISE floatP w = bx * ay - by * ax;                                                   \
+        floatP zero_ = PK_SPLAT(0.0f);                                                          \
+        intP mixed = PK_AND(PK_OR(PK_OR(PK_LT(u, zero_), PK_LT(v, zero_)), PK_LT(w, zero_)),    \
+                            PK_OR(PK_OR(PK_GT(u, zero_), PK_GT(v, zero_)), PK_GT(w, zero_)));   \
+        intP maybe = PK_AND(PK_NOT(mixed), PK_NOT(PK_EQ(u + v + w, zero_)));                    \
+        BVH_PACKET_COUNT_TEST                                                                   \
+        if (!any(maybe)) continue;                                                              \
+        int m_[BVH_PACKET];                                                                     \
+        PK_STORE_MASK(maybe, m_)                                                                \
+        for (int l = 0; l < BVH_PACKET; ++l) {                                                  \
+            if (l >= pk.lanes || m_[l] == 0) continue;                                          \
+            tr[l].best = closer(tr[l].best, ray_triangle_wt(tr[l].wr, T.a, T.b, T.c, T.n), I32(tri), tr[l].tmin); \
+            BVH_PACKET_PRUNE(l)                                                                 \
+        }                                                                                       \
+    }                                                                                           \
 }
 
 // The packet's node visit: each slot's box against every lane (the single ray's slab test, lane
@@ -1611,9 +1657,9 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         floatP az = (lz.c_ - pk.oz) * pk.iz, bz = (hz.c_ - pk.oz) * pk.iz;                      \
         floatP tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), pk.t0));                \
         floatP tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN, best);     \
-        intP hit = tn <= tf;                                                                    \
+        intP hit = PK_LE(tn, tf);                                                               \
         if (any(hit)) {                                                                         \
-            float entry = HREDUCE(min, select((floatP)(INF_F), tn, hit));                       \
+            float entry = HREDUCE(min, PK_SELECT(PK_SPLAT(INF_F), tn, hit));                    \
             BVH_PUSH_SLOT(4u * record + (k_), refs.c_, counts.c_, entry)                        \
         }                                                                                       \
     }
@@ -1622,6 +1668,38 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
 #else
 #define BVH_PACKET_TICK
 #endif
+#ifdef BVH_SORT_SLOTS
+// Where the stack is written lane by lane (BVH_SORT_SLOTS: llvmpipe), the record's slot entries are
+// gathered first (a slot no lane hits at inf, against -inf) and pushed through the single ray's
+// sorting network.
+#define BVH_PACKET_SLOT_ENTRY(k_, c_)                                                           \
+    if (refs.c_ != BVH_NONE) {                                                                  \
+        floatP ax = (lx.c_ - pk.ox) * pk.ix, bx = (hx.c_ - pk.ox) * pk.ix;                      \
+        floatP ay = (ly.c_ - pk.oy) * pk.iy, by = (hy.c_ - pk.oy) * pk.iy;                      \
+        floatP az = (lz.c_ - pk.oz) * pk.iz, bz = (hz.c_ - pk.oz) * pk.iz;                      \
+        floatP tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), pk.t0));                \
+        floatP tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN, best);     \
+        intP hit = PK_LE(tn, tf);                                                               \
+        if (any(hit)) {                                                                         \
+            slot_tn.c_ = HREDUCE(min, PK_SELECT(PK_SPLAT(INF_F), tn, hit));                     \
+            slot_tf.c_ = INF_F;                                                                 \
+        }                                                                                       \
+    }
+#define BVH_PACKET_RECORD(record_) {                                                            \
+        uint record = (record_);                                                                \
+        BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                         \
+        float4 lx = pl.lx, hx = pl.hx, ly = pl.ly, hy = pl.hy, lz = pl.lz, hz = pl.hz;          \
+        uint4 refs = bvh_slot_refs(CTX_ARG record);                                             \
+        uint4 counts = bvh_slot_counts(CTX_ARG record);                                         \
+        float4 slot_tn = make_float4(INF_F, INF_F, INF_F, INF_F);                               \
+        float4 slot_tf = make_float4(-INF_F, -INF_F, -INF_F, -INF_F);                           \
+        BVH_PACKET_SLOT_ENTRY(0u, x)                                                            \
+        BVH_PACKET_SLOT_ENTRY(1u, y)                                                            \
+        BVH_PACKET_SLOT_ENTRY(2u, z)                                                            \
+        BVH_PACKET_SLOT_ENTRY(3u, w)                                                            \
+        BVH_SLOTS(slot_tn, slot_tf, refs, counts)                                               \
+    }
+#else
 #define BVH_PACKET_RECORD(record_) {                                                            \
         uint record = (record_);                                                                \
         BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                         \
@@ -1633,6 +1711,7 @@ INLINE void bvh_packet_leaf(CTX_PARAM const Packet* p, Trace* tr, float* prune, 
         BVH_PACKET_SLOT(2u, z)                                                                  \
         BVH_PACKET_SLOT(3u, w)                                                                  \
     }
+#endif
 #define BVH_VISIT_PACKET {                                                                      \
         BVH_PACKET_TICK                                                                         \
         floatP best = VLOADP(0, prune);                                                         \
@@ -1675,11 +1754,13 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     pk.ox = VLOADP(0, ox_); pk.oy = VLOADP(0, oy_); pk.oz = VLOADP(0, oz_);
     pk.ix = VLOADP(0, ix_); pk.iy = VLOADP(0, iy_); pk.iz = VLOADP(0, iz_);
     pk.t0 = VLOADP(0, t0_); pk.sx = VLOADP(0, sx_); pk.sy = VLOADP(0, sy_); pk.sz = VLOADP(0, sz_);
-    intP kx = VLOADP(0, kx_), ky = VLOADP(0, ky_), kz = VLOADP(0, kz_);
-    pk.kx0 = kx == 0; pk.kx1 = kx == 1; pk.ky0 = ky == 0; pk.ky1 = ky == 1; pk.kz0 = kz == 0; pk.kz1 = kz == 1;
-    BVH_WALK(BVH_VISIT_PACKET, HREDUCE(max, VLOADP(0, prune)), bvh_packet_leaf(CTX_ARG &pk, tr, prune, e);,
-             BVH_PACKET_DONE, done = 1;)
-    for (int l = 0; l < pk.lanes; ++l) store_hit(CTX_ARG first + U32(l), trace_finish(CTX_ARG tr[l], first + U32(l)));
+    pk.kx0 = PK_IEQ(VLOADI(0, kx_), 0); pk.kx1 = PK_IEQ(VLOADI(0, kx_), 1);
+    pk.ky0 = PK_IEQ(VLOADI(0, ky_), 0); pk.ky1 = PK_IEQ(VLOADI(0, ky_), 1);
+    pk.kz0 = PK_IEQ(VLOADI(0, kz_), 0); pk.kz1 = PK_IEQ(VLOADI(0, kz_), 1);
+    BVH_WALK(BVH_VISIT_PACKET, HREDUCE(max, VLOADP(0, prune)), BVH_PACKET_LEAF(e), BVH_PACKET_DONE, done = 1;)
+    for (int l = 0; l < BVH_PACKET; ++l) {
+        if (l < pk.lanes) store_hit(CTX_ARG first + U32(l), trace_finish(CTX_ARG tr[l], first + U32(l)));
+    }
 }
 #elif defined(BVH_REFILL)
 // ---- Refilled lanes (BVH_REFILL rays per work item) -----------------------------------------
