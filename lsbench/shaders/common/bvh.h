@@ -1650,7 +1650,8 @@ STRUCT(Packet) {
 // The packet's node visit: each slot's box against every lane (the single ray's slab test, lane
 // by lane); a slot is pushed when some lane's ray hits it, at the smallest entry of those lanes, and
 // its data prefetched as the single ray's (Sponza 512² primary: 0.91-0.93 of the device time).
-#define BVH_PACKET_SLOT(k_, c_)                                                                 \
+// BVH_PACKET_SLOT(c_, ON_HIT): slot c_'s test, ON_HIT run with its `entry` when some lane hits it.
+#define BVH_PACKET_SLOT(c_, ON_HIT)                                                             \
     if (refs.c_ != BVH_NONE) {                                                                  \
         floatP ax = (lx.c_ - pk.ox) * pk.ix, bx = (hx.c_ - pk.ox) * pk.ix;                      \
         floatP ay = (ly.c_ - pk.oy) * pk.iy, by = (hy.c_ - pk.oy) * pk.iy;                      \
@@ -1660,7 +1661,7 @@ STRUCT(Packet) {
         intP hit = PK_LE(tn, tf);                                                               \
         if (any(hit)) {                                                                         \
             float entry = HREDUCE(min, PK_SELECT(PK_SPLAT(INF_F), tn, hit));                    \
-            BVH_PUSH_SLOT(4u * record + (k_), refs.c_, counts.c_, entry)                        \
+            ON_HIT                                                                              \
         }                                                                                       \
     }
 #ifdef COUNT_WORK
@@ -1671,47 +1672,31 @@ STRUCT(Packet) {
 #ifdef BVH_SORT_SLOTS
 // Where the stack is written lane by lane (BVH_SORT_SLOTS: llvmpipe), the record's slot entries are
 // gathered first (a slot no lane hits at inf, against -inf) and pushed through the single ray's
-// sorting network.
-#define BVH_PACKET_SLOT_ENTRY(k_, c_)                                                           \
-    if (refs.c_ != BVH_NONE) {                                                                  \
-        floatP ax = (lx.c_ - pk.ox) * pk.ix, bx = (hx.c_ - pk.ox) * pk.ix;                      \
-        floatP ay = (ly.c_ - pk.oy) * pk.iy, by = (hy.c_ - pk.oy) * pk.iy;                      \
-        floatP az = (lz.c_ - pk.oz) * pk.iz, bz = (hz.c_ - pk.oz) * pk.iz;                      \
-        floatP tn = max(max(min(ax, bx), min(ay, by)), max(min(az, bz), pk.t0));                \
-        floatP tf = min(min(min(max(ax, bx), max(ay, by)), max(az, bz)) * BVH_WIDEN, best);     \
-        intP hit = PK_LE(tn, tf);                                                               \
-        if (any(hit)) {                                                                         \
-            slot_tn.c_ = HREDUCE(min, PK_SELECT(PK_SPLAT(INF_F), tn, hit));                     \
-            slot_tf.c_ = INF_F;                                                                 \
-        }                                                                                       \
-    }
-#define BVH_PACKET_RECORD(record_) {                                                            \
-        uint record = (record_);                                                                \
-        BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                         \
-        float4 lx = pl.lx, hx = pl.hx, ly = pl.ly, hy = pl.hy, lz = pl.lz, hz = pl.hz;          \
-        uint4 refs = bvh_slot_refs(CTX_ARG record);                                             \
-        uint4 counts = bvh_slot_counts(CTX_ARG record);                                         \
-        float4 slot_tn = make_float4(INF_F, INF_F, INF_F, INF_F);                               \
-        float4 slot_tf = make_float4(-INF_F, -INF_F, -INF_F, -INF_F);                           \
-        BVH_PACKET_SLOT_ENTRY(0u, x)                                                            \
-        BVH_PACKET_SLOT_ENTRY(1u, y)                                                            \
-        BVH_PACKET_SLOT_ENTRY(2u, z)                                                            \
-        BVH_PACKET_SLOT_ENTRY(3u, w)                                                            \
-        BVH_SLOTS(slot_tn, slot_tf, refs, counts)                                               \
-    }
+// sorting network: with BVH_PUSH's insertion the packets took 1.08 of the one-ray time there
+// instead of 0.81 (Sponza 256² primary rays; docs/profiles.md, section 26).
+#define BVH_PACKET_SLOTS                                                                        \
+    float4 slot_tn = make_float4(INF_F, INF_F, INF_F, INF_F);                                   \
+    float4 slot_tf = make_float4(-INF_F, -INF_F, -INF_F, -INF_F);                               \
+    BVH_PACKET_SLOT(x, slot_tn.x = entry; slot_tf.x = INF_F;)                                   \
+    BVH_PACKET_SLOT(y, slot_tn.y = entry; slot_tf.y = INF_F;)                                   \
+    BVH_PACKET_SLOT(z, slot_tn.z = entry; slot_tf.z = INF_F;)                                   \
+    BVH_PACKET_SLOT(w, slot_tn.w = entry; slot_tf.w = INF_F;)                                   \
+    BVH_SLOTS(slot_tn, slot_tf, refs, counts)
 #else
+#define BVH_PACKET_SLOTS                                                                        \
+    BVH_PACKET_SLOT(x, BVH_PUSH_SLOT(4u * record, refs.x, counts.x, entry))                     \
+    BVH_PACKET_SLOT(y, BVH_PUSH_SLOT(4u * record + 1u, refs.y, counts.y, entry))                \
+    BVH_PACKET_SLOT(z, BVH_PUSH_SLOT(4u * record + 2u, refs.z, counts.z, entry))                \
+    BVH_PACKET_SLOT(w, BVH_PUSH_SLOT(4u * record + 3u, refs.w, counts.w, entry))
+#endif
 #define BVH_PACKET_RECORD(record_) {                                                            \
         uint record = (record_);                                                                \
         BvhPlanes pl = bvh_node_planes(CTX_ARG record);                                         \
         float4 lx = pl.lx, hx = pl.hx, ly = pl.ly, hy = pl.hy, lz = pl.lz, hz = pl.hz;          \
         uint4 refs = bvh_slot_refs(CTX_ARG record);                                             \
         uint4 counts = bvh_slot_counts(CTX_ARG record);                                         \
-        BVH_PACKET_SLOT(0u, x)                                                                  \
-        BVH_PACKET_SLOT(1u, y)                                                                  \
-        BVH_PACKET_SLOT(2u, z)                                                                  \
-        BVH_PACKET_SLOT(3u, w)                                                                  \
+        BVH_PACKET_SLOTS                                                                        \
     }
-#endif
 #define BVH_VISIT_PACKET {                                                                      \
         BVH_PACKET_TICK                                                                         \
         floatP best = VLOADP(0, prune);                                                         \
