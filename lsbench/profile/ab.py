@@ -8,7 +8,8 @@ so both see the same load on a shared machine (docs/profiles.md, section 7):
 A is the case as built; B is its trace kernel compiled with extra defines (a variant kept behind
 an #ifdef while it is measured; a define the build already sets, e.g. BVH_STACK, is replaced),
 with another work-group size, a second build with another leaf size, or the packet traversal
-with P rays per work item (bvh: 8 or 16 on OpenCL, 4 on GLSL; A then runs one ray per work item: LSBENCH_PACKET). Prints each variant's min and median device time, the median of the K per-pair ratios
+with P rays per work item (bvh: 8 or 16 on OpenCL, 4 on GLSL; A then runs one ray per work item:
+LSBENCH_PACKET). Prints each variant's min and median device time, the median of the K per-pair ratios
 B/A with its quartiles, and whether B's hits equal A's (prim ids and distances). A single pair
 swings by ±10 % under load; the median of 20 pairs resolves about 3 %.
 """
@@ -34,7 +35,9 @@ def main(argv=None) -> None:
     variant.add_argument("--local-size", type=int, help="B's work-group size (on PoCL, where a trace's work "
                          "group runs as one work item's loop, KernelSpec.item_loop: the items per loop)")
     variant.add_argument("--leaf-size-b", type=int, help="B: a second build with this leaf size")
-    variant.add_argument("--packet-b", type=int, choices=(4, 8, 16), help="B: this many rays per work item")
+    widths = sorted({w for ws in backends.PACKET_WIDTHS.values() for w in ws})
+    variant.add_argument("--packet-b", type=int, choices=widths,
+                         help="B: this many rays per work item (the backend's backends.PACKET_WIDTHS)")
     args = p.parse_args(argv)
     _, rays, _, build = load_case(args)
 
