@@ -423,17 +423,21 @@ def test_hits_agree_with_embree(device, structure, scene_name):
         built.release()
 
 
-@pytest.mark.parametrize("backend,width", [("opencl", 8), ("opencl", 16), ("glsl", 4)])
-def test_packets_find_the_single_ray_hits(monkeypatch, backend, width):
+@pytest.mark.parametrize("structure,backend,width", [("bvh", "opencl", 8), ("bvh", "opencl", 16), ("bvh", "glsl", 4),
+                                                     ("bvh-ls", "opencl", 8), ("bvh-ls", "glsl", 4)])
+def test_packets_find_the_single_ray_hits(monkeypatch, structure, backend, width):
     """The packet traversal (`width` rays per work item, shaders/common/bvh.h BVH_PACKET: OpenCL's
     float8 / float16 lanes, GLSL's vec4) against the single-ray kernel and Embree: a ray count that
     leaves the last packet part empty, rays from inside the scene in every direction (lanes with
     different dominant axes), rays with a tmin and a per-ray tmax, and any-hit shadow rays. The
     same closest distance per ray; another triangle only at a tie (a box entry rounded past the hit
-    leaves the single ray's walk one tie short), which Embree's check explains."""
+    leaves the single ray's walk one tie short), which Embree's check explains. bvh-ls: its leaves'
+    Line Spaces looked up lane by lane."""
     device = backends.get_device(backend)
     scene = load_scene("atrium")
-    built = backends.build(device, "bvh", scene, BuildParams(resolution=(1, 1, 1)))
+    built = backends.build(device, structure, scene, BuildParams(resolution=(1, 1, 1), ls_n=2, ls_min_candidates=4))
+    if structure == "bvh-ls":
+        assert built.stats["linespace_leaves"] > 0
     lo, hi = scene.bounds
     light = 0.1 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
     primary = primary_rays(scene, 37, 29)
@@ -466,15 +470,15 @@ def test_packets_find_the_single_ray_hits(monkeypatch, backend, width):
 
 
 @pytest.mark.parametrize("backend,width", [("opencl", 8), ("glsl", 4)])
-@pytest.mark.parametrize("scene_name", ["cornell", "spheres"])
-def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name, backend, width):
+@pytest.mark.parametrize("scene_name,structure", [("cornell", "bvh"), ("spheres", "bvh"), ("spheres", "bvh-ls")])
+def test_packets_on_adversarial_rays_are_explained(monkeypatch, scene_name, structure, backend, width):
     """Adversarial rays (along edges and faces, through vertices, grazing) forced into packets: a
     lane may now test triangles its own walk's boxes ruled out (a box face the ray lies in), and
     every answer must still be one Embree's check explains (the grazing-vertex distance of
     geometry.h's triangle_plane_t came from here)."""
     monkeypatch.setenv("LSBENCH_PACKET", str(width))
     scene = load_scene(scene_name)
-    out = check_structure(backends.get_device(backend), "bvh", scene, (1, 1, 1))
+    out = check_structure(backends.get_device(backend), structure, scene, (1, 1, 1), ls_n=2 if structure == "bvh-ls" else 0)
     assert out["hits"].packet == width and out["unexplained"] == [], explain(out)
 
 
@@ -508,6 +512,13 @@ def test_packets_for_coherent_rays_on_cpu_devices_refills_for_rays_without_local
             assert backends.packet_width(built, shadow, None) == 1
         assert backends.packet_width(grid_built, primary, None) == 1
         assert backends.trace(built, primary).packet == expect
+        # bvh-ls: packets in SIMD lanes only (StructureInfo.serial_packets)
+        ls_built = backends.build(device, "bvh-ls", scene, BuildParams(resolution=(1, 1, 1), ls_n=1))
+        try:
+            assert backends.packet_width(ls_built, primary, None) == (1 if device.serial_work_items else expect)
+            assert backends.packet_width(ls_built, incoherent, None) == 1
+        finally:
+            ls_built.release()
         refill = 1 if device.serial_work_items else backends.REFILL_RAYS
         assert backends.refill_rays(built, incoherent, None) == refill
         assert backends.refill_rays(built, primary, None) == 1

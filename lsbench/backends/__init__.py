@@ -13,8 +13,9 @@ forces a budget on any device, e.g. to test the slices on OpenCL.
 
 Where the device runs work items one at a time on a CPU (Device.packet_width: PoCL, 8) or loads
 each SIMD lane's node on its own (llvmpipe, 4 per lane) and the rays are coherent (packet_width
-below: primary rays, and on PoCL shadow rays to a light), a structure with a packet traversal (bvh)
-traces a packet of rays per work item in the vector lanes (shaders/common/bvh.h); env
+below: primary rays, and on PoCL shadow rays to a light), a structure with a packet traversal (bvh;
+bvh-ls in SIMD lanes only) traces a packet of rays per work item in the vector lanes
+(shaders/common/bvh.h); env
 LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) or 4 (GLSL) decides it
 by hand.
 
@@ -250,19 +251,21 @@ PACKET_WIDTHS = {"opencl": (8, 16), "glsl": (4,)}
 def packet_width(built: Built, rays, budget: int | None) -> int:
     """Rays per work item for this trace: the device's packet_width where the structure has a
     packet traversal, one launch runs whole rays (no slices) and the rays are coherent
-    (ray_coherence >= PACKET_MIN_COHERENCE) and their query is one of the device's packet_queries;
+    (ray_coherence >= PACKET_MIN_COHERENCE) and their query is one of the device's packet_queries
+    (and, where work items run one at a time, the structure's packets pay there: serial_packets);
     else 1. Env LSBENCH_PACKET (auto, 1, or one of the backend's PACKET_WIDTHS) overrides the choice."""
     device = built.device
     allowed = ("auto", "1") + tuple(str(w) for w in PACKET_WIDTHS.get(device.backend, ()))
     forced = os.environ.get("LSBENCH_PACKET", "").strip().lower() or "auto"
     if forced not in allowed:
         raise ValueError(f"LSBENCH_PACKET must be one of {', '.join(allowed)} on {device.backend}, got {forced!r}")
-    if budget is not None or not structure_info(built.structure).packets:
+    info = structure_info(built.structure)
+    if budget is not None or not info.packets:
         return 1
     if forced != "auto":
         return int(forced)
     width = device.packet_width
-    if width <= 1 or rays.query not in device.packet_queries or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
+    if width <= 1 or (device.serial_work_items and not info.serial_packets) or rays.query not in device.packet_queries or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
         return 1
     return width
 

@@ -23,6 +23,10 @@ class StructureInfo:
     what: str  # one line, with the thesis section (Delgado Krämer 2019)
     leaf_size: int = 0  # BVHs: the default most triangles per leaf (leaf_size key); 0: takes none
     packets: bool = False  # its trace kernel has a packet traversal (Device.packet_width; bvh.h BVH_PACKET)
+    # The packets are picked by default also where work items run one at a time (Device.serial_work_items:
+    # PoCL); bvh-ls, whose packet tests a leaf's Line Space lane by lane, gains only where they run in
+    # SIMD lanes (llvmpipe; docs/profiles.md, section 27).
+    serial_packets: bool = True
     refill: bool = False  # its trace kernel can refill a lane whose ray ended (backends.refill_rays; bvh.h BVH_REFILL)
 
 
@@ -36,7 +40,7 @@ CATALOGUE: tuple[StructureInfo, ...] = (
     StructureInfo("bvh", bvh, False, False, "binary BVH: binned SAH, treelet restructuring (Fig. 4c baseline)",
                   bvh.DEFAULT_LEAF_SIZE, packets=True, refill=True),
     StructureInfo("bvh-ls", bvh_ls, False, True, "BVH with a Line Space in its large leaves (7, future work)",
-                  bvh_ls_module.DEFAULT_LEAF_SIZE, refill=True),
+                  bvh_ls_module.DEFAULT_LEAF_SIZE, packets=True, serial_packets=False, refill=True),
 )
 STRUCTURES: dict[str, StructureInfo] = {s.name: s for s in CATALOGUE}
 

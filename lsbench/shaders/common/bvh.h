@@ -1160,17 +1160,21 @@ INLINE uint2 bvh_leaf_range(CTX_PARAM uint cell) {
 INLINE Candidates ols_leaf_shaft(CTX_PARAM Candidates list, GridRay g, uint leaf, int3 cell, float2 t_leaf);  // octree_ls.h
 #endif
 
-INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
-    uint2 range = bvh_leaf_range(CTX_ARG cell);
-    Candidates c = plain_list(range.x, range.y);
 #ifdef LEAF_LINE_SPACE
-    Box leaf = bvh_slot_box(CTX_ARG cell >> 2, cell & 3u);
+// The stretch of `ray` from tmin in the box of leaf `leaf` (the walk's slab test without its bound,
+// widened as there): empty (x > y) when the ray misses the box.
+INLINE float2 bvh_leaf_span(Ray ray, float tmin, Box leaf) {
     float3 inv = make_float3(bvh_rcp(ray.d.x), bvh_rcp(ray.d.y), bvh_rcp(ray.d.z));
     float3 a = (leaf.lo - ray.o) * inv;
     float3 b = (leaf.hi - ray.o) * inv;
     float3 n = min(a, b);
     float3 f = max(a, b);
-    float2 span = make_float2(max(max(n.x, n.y), max(n.z, tr.tmin)), min(min(f.x, f.y), f.z) * BVH_WIDEN);
+    return make_float2(max(max(n.x, n.y), max(n.z, tmin)), min(min(f.x, f.y), f.z) * BVH_WIDEN);
+}
+
+// The leaf of cell `cell` (box `leaf`, the ray's stretch in it `span`) through its Line Space.
+INLINE Trace bvh_test_ls_leaf(CTX_PARAM Trace tr, Ray ray, uint cell, Box leaf, float2 span) {
+    uint2 range = bvh_leaf_range(CTX_ARG cell);
     Box box = bvh_ls_box(leaf);
     float3 scale = box.hi - box.lo;
     GridRay g;
@@ -1180,9 +1184,19 @@ INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
     g.voxel_t = 1.0f / max(fabs(g.d.x), max(fabs(g.d.y), fabs(g.d.z)));
     g.t_base = 0.0f;  // t here is the ray's own (trace.h: GridRay)
     g.span = span;
-    c = ols_leaf_shaft(CTX_ARG c, g, cell, make_int3(0, 0, 0), span);
-#endif
+    Candidates c = ols_leaf_shaft(CTX_ARG plain_list(range.x, range.y), g, cell, make_int3(0, 0, 0), span);
     return test_candidates(CTX_ARG tr, c);
+}
+#endif
+
+INLINE Trace bvh_test_leaf(CTX_PARAM Trace tr, Ray ray, uint cell) {
+#ifdef LEAF_LINE_SPACE
+    Box leaf = bvh_slot_box(CTX_ARG cell >> 2, cell & 3u);
+    return bvh_test_ls_leaf(CTX_ARG tr, ray, cell, leaf, bvh_leaf_span(ray, tr.tmin, leaf));
+#else
+    uint2 range = bvh_leaf_range(CTX_ARG cell);
+    return test_candidates(CTX_ARG tr, plain_list(range.x, range.y));
+#endif
 }
 
 // Push a hit slot (entry e at entry distance t) among the ones this node pushed so far, kept in
@@ -1609,6 +1623,23 @@ STRUCT(Packet) {
 #else
 #define BVH_PACKET_RECORD_AT(i_, tri_) load_candidate(CTX_ARG tri_)
 #endif
+#ifdef LEAF_LINE_SPACE
+// bvh-ls: a leaf's Line Space gives each lane the shaft of its own ray's chord, so the leaf is
+// tested lane by lane, each lane whose ray meets the leaf's box before its bound (the single walk's
+// slab test for that box) through bvh_test_ls_leaf as its single walk would; `lane_ray` holds the
+// lanes' rays. (The packet test of bvh below would test the leaf's whole list in every lane.)
+#define BVH_PACKET_LEAF(e_) {                                                                   \
+    uint cell_ = (e_) & ~BVH_LEAF;                                                              \
+    Box leaf_ = bvh_slot_box(CTX_ARG cell_ >> 2, cell_ & 3u);                                   \
+    for (int l = 0; l < BVH_PACKET; ++l) {                                                      \
+        if (l >= pk.lanes) continue;                                                            \
+        float2 span_ = bvh_leaf_span(lane_ray[l], tr[l].tmin, leaf_);                           \
+        if (span_.x > min(span_.y, prune[l])) continue;                                         \
+        tr[l] = bvh_test_ls_leaf(CTX_ARG tr[l], lane_ray[l], cell_, leaf_, span_);              \
+        BVH_PACKET_PRUNE(l)                                                                     \
+    }                                                                                           \
+}
+#else
 #define BVH_PACKET_LEAF(e_) {                                                                   \
     uint2 range = bvh_leaf_range(CTX_ARG (e_) & ~BVH_LEAF);                                     \
     for (uint i = range.x; i < range.y; ++i) {                                                  \
@@ -1646,6 +1677,8 @@ STRUCT(Packet) {
         }                                                                                       \
     }                                                                                           \
 }
+
+#endif
 
 // The packet's node visit: each slot's box against every lane (the single ray's slab test, lane
 // by lane); a slot is pushed when some lane's ray hits it, at the smallest entry of those lanes, and
@@ -1714,6 +1747,9 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
     float t0_[BVH_PACKET], sx_[BVH_PACKET], sy_[BVH_PACKET], sz_[BVH_PACKET], prune[BVH_PACKET];
     int kx_[BVH_PACKET], ky_[BVH_PACKET], kz_[BVH_PACKET];
     Trace tr[BVH_PACKET];
+#ifdef LEAF_LINE_SPACE
+    Ray lane_ray[BVH_PACKET];
+#endif
     Packet pk;
     pk.lanes = 0;
     for (int l = 0; l < BVH_PACKET; ++l) {
@@ -1729,6 +1765,9 @@ INLINE void trace_bvh_kernel(CTX_PARAM uint gid) {
             r.tmax = INF_F;
         }
         tr[l] = trace_start(CTX_ARG r, ray);
+#ifdef LEAF_LINE_SPACE
+        lane_ray[l] = r;
+#endif
         ox_[l] = r.o.x; oy_[l] = r.o.y; oz_[l] = r.o.z;
         ix_[l] = bvh_rcp(r.d.x); iy_[l] = bvh_rcp(r.d.y); iz_[l] = bvh_rcp(r.d.z);
         t0_[l] = r.tmin;
