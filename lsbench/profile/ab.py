@@ -8,7 +8,7 @@ so both see the same load on a shared machine (docs/profiles.md, section 7):
 A is the case as built; B is its trace kernel compiled with extra defines (a variant kept behind
 an #ifdef while it is measured; a define the build already sets, e.g. BVH_STACK, is replaced),
 with another work-group size, a second build with another leaf size, or the packet traversal
-with P rays per work item (bvh: 8 or 16 on OpenCL, 4 on GLSL; A then runs one ray per work item:
+with P rays per work item (bvh, bvh-ls: 8 or 16 on OpenCL, 4 on GLSL; A then runs one ray per work item:
 LSBENCH_PACKET). Prints each variant's min and median device time, the median of the K per-pair ratios
 B/A with its quartiles, and whether B's hits equal A's (prim ids and distances). A single pair
 swings by ±10 % under load; the median of 20 pairs resolves about 3 %.
