@@ -15,9 +15,8 @@ Where the device runs work items one at a time on a CPU (Device.packet_width: Po
 each SIMD lane's node on its own (llvmpipe, 4 per lane) and the rays are coherent (packet_width
 below: primary rays, and on PoCL shadow rays to a light), a structure with a packet traversal (bvh;
 bvh-ls in SIMD lanes only) traces a packet of rays per work item in the vector lanes
-(shaders/common/bvh.h); env
-LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16 (OpenCL) or 4 (GLSL) decides it
-by hand.
+(shaders/common/bvh.h); env LSBENCH_PACKET = auto (default), 1 (a ray per work item), 8 or 16
+(OpenCL) or 4 (GLSL) decides it by hand.
 
 A ray set without locality (consecutive rays starting far apart: the incoherent set) is traced in
 the order of its origins' cells, sorted on the device inside the timed trace (ray_order.py; env
@@ -265,7 +264,9 @@ def packet_width(built: Built, rays, budget: int | None) -> int:
     if forced != "auto":
         return int(forced)
     width = device.packet_width
-    if width <= 1 or (device.serial_work_items and not info.serial_packets) or rays.query not in device.packet_queries or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
+    if width <= 1 or (device.serial_work_items and not info.serial_packets):
+        return 1
+    if rays.query not in device.packet_queries or ray_coherence(rays, width) < PACKET_MIN_COHERENCE:
         return 1
     return width
 
